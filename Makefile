@@ -1,0 +1,47 @@
+# so101-sim: `make demo` runs the main job, `make test` runs the tests.
+# Both create or refresh .venv (Python 3.12, which lerobot 0.6.x needs) on their own.
+
+SHELL := /bin/bash
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+# The first Python 3.12 found: on PATH, under pyenv, or in the usual system places.
+PYTHON312 ?= $(shell for c in python3.12 $$(pyenv root 2>/dev/null)/versions/3.12*/bin/python3.12 \
+	$$HOME/.pyenv/versions/3.12*/bin/python3.12 /usr/local/bin/python3.12 /usr/bin/python3.12; do \
+	if "$$c" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 12))' >/dev/null 2>&1; then \
+	echo "$$c"; break; fi; done)
+
+export HF_HUB_OFFLINE := 1
+
+.PHONY: venv demo test bench lint clean
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@if [ -z "$(PYTHON312)" ]; then \
+		echo "error: Python 3.12 not found (lerobot 0.6.x needs 3.12)."; \
+		echo "  install it, e.g.: pyenv install 3.12 | apt-get install python3.12 python3.12-venv"; \
+		echo "  or point at one: make PYTHON312=/path/to/python3.12 ..."; \
+		exit 1; fi
+	@echo "using $(PYTHON312)"
+	@[ -x $(PY) ] && $(PY) -c 'import sys; sys.exit(sys.version_info[:2] != (3, 12))' \
+		|| { rm -rf $(VENV); $(PYTHON312) -m venv $(VENV); }
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[dev]"
+	@touch $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/so101-sim demo --out outputs/demo
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(PY) benchmarks/bench_env.py
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+
+clean:
+	rm -rf $(VENV) outputs .pytest_cache .ruff_cache

@@ -1,0 +1,58 @@
+"""`so101-sim` command line."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def parse_image_size(text: str) -> tuple[int, int]:
+    """"480x640" -> (480, 640) (height x width)."""
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"image size {text!r} is invalid; expected HEIGHTxWIDTH, e.g. 480x640") from None
+    if not (16 <= h <= 2048 and 16 <= w <= 2048):
+        raise argparse.ArgumentTypeError(f"image size {text!r} out of range; each side 16..2048")
+    return h, w
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from so101_sim.demo import run_demo
+
+    paths = run_demo(Path(args.out), steps=args.steps, image_size=args.image_size,
+                     seed=args.seed, task=args.task)
+    for name, path in paths.items():
+        print(f"{name}: {path}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="so101-sim", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    demo = sub.add_parser("demo", help="roll the env with a fixed action sequence; write an mp4 "
+                                       "of front|side and one PNG per camera")
+    demo.add_argument("--out", default="outputs/demo", help="output folder")
+    demo.add_argument("--steps", type=int, default=240)
+    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--task", default="pick_place", help="task name in envs/ or a .toml path")
+    demo.add_argument("--image-size", type=parse_image_size, default=(480, 640),
+                      help="HEIGHTxWIDTH of each camera (default 480x640)")
+    demo.set_defaults(func=_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+        print(f"so101-sim {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

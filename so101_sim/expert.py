@@ -1,0 +1,118 @@
+"""Scripted pick-and-place expert for `so101_sim/PickPlace-v0`.
+
+It reads the true cube and target poses from the observation's ``environment_state`` (use
+``obs_type="pixels_agent_pos_env_state"`` or ``"state"``) and the arm's ``agent_pos``, plans
+top-down grasp and place poses with MuJoCo-Jacobian IK, and follows smooth joint-space
+segments at the env's control rate: approach above the cube, descend, close, lift, carry,
+lower onto the target, release, retreat. Outputs are the env's actions (LeRobot units).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from so101_sim.kinematics import TopDownIK
+from so101_sim.scene import build_model
+from so101_sim.task import TaskSpec, load_task
+from so101_sim.units import lerobot_to_radians, radians_to_lerobot
+
+FIXED_PAD_FACE_X = -0.0095  # gripper-frame x of the fixed pad's inner face (assets/so101.xml)
+TCP_X = 0.002  # gripper-frame x of the `tcp` site
+OPEN = 45.0  # gripper opening for approach/release (LeRobot units): ~5 cm between pads
+CLOSED = 0.0
+
+
+@dataclass
+class _Segment:
+    name: str
+    steps: int
+    target: np.ndarray  # (6,) LeRobot units at the end of the segment
+
+
+class ScriptedExpert:
+    """Policy-like object: ``reset(seed)`` then ``select_action(obs)`` every step."""
+
+    def __init__(self, task: str | TaskSpec = "pick_place", clearance: float = 0.004,
+                 hover: float = 0.06, carry_height: float = 0.08) -> None:
+        self.task = load_task(task)
+        model, _ = build_model(self.task)
+        self.ik = TopDownIK(model)
+        self.clearance, self.hover, self.carry_height = clearance, hover, carry_height
+        self._segments: list[_Segment] = []
+        self._t = 0
+        self._start = np.zeros(6)
+
+    def reset(self, seed: int | None = None) -> None:
+        self._segments = []
+        self._t = 0
+
+    def _plan(self, agent_pos: np.ndarray, env_state: np.ndarray) -> None:
+        half = self.task.cube_size / 2
+        cube, quat, target = env_state[:3].astype(float), env_state[3:7], env_state[7:10]
+        w, x, y, z = quat
+        cube_yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+        q_now = lerobot_to_radians(agent_pos)[:5]
+        seed_q = np.deg2rad([0.0, 0.0, 0.0, 90.0, q_now[4] * 180 / np.pi])
+
+        # Of the cube's four face-aligned yaws, take the one needing the least wrist roll.
+        sols = []
+        for k in range(4):
+            yaw = cube_yaw + k * np.pi / 2
+            grasp_offset = (FIXED_PAD_FACE_X + half + self.clearance) - TCP_X
+            axis = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+            above = cube + np.array([0, 0, self.hover]) - grasp_offset * axis
+            q, err = self.ik.solve(above, yaw, seed_q)
+            sols.append((err > 2e-3, abs(q[4] - q_now[4]), yaw, axis, grasp_offset, q))
+        _, _, yaw, axis, grasp_offset, q_above = min(sols, key=lambda s: (s[0], s[1]))
+
+        grasp = cube + np.array([0, 0, 0.002]) - grasp_offset * axis
+        q_grasp, _ = self.ik.solve(grasp, yaw, q_above)
+        q_lift, _ = self.ik.solve(grasp + np.array([0, 0, self.carry_height]), yaw, q_grasp)
+        # Place: the cube (not the tool) goes onto the target centre.
+        place_xy = np.asarray(target[:2]) - grasp_offset * axis[:2]
+        q_carry, _ = self.ik.solve(np.r_[place_xy, grasp[2] + self.carry_height], yaw, q_lift)
+        q_place, _ = self.ik.solve(np.r_[place_xy, grasp[2] + 0.004], yaw, q_carry)
+
+        def act(q5: np.ndarray, grip: float) -> np.ndarray:
+            return np.r_[radians_to_lerobot(np.r_[q5, 0.0])[:5], grip]
+
+        self._segments = [
+            _Segment("approach", 35, act(q_above, OPEN)),
+            _Segment("descend", 20, act(q_grasp, OPEN)),
+            _Segment("close", 12, act(q_grasp, CLOSED)),
+            _Segment("lift", 20, act(q_lift, CLOSED)),
+            _Segment("carry", 35, act(q_carry, CLOSED)),
+            _Segment("lower", 20, act(q_place, CLOSED)),
+            _Segment("release", 10, act(q_place, OPEN)),
+            _Segment("retreat", 15, act(q_carry, OPEN)),
+        ]
+        self._start = np.asarray(agent_pos, dtype=np.float64).copy()
+
+    @property
+    def phase(self) -> str:
+        t = self._t
+        for seg in self._segments:
+            if t < seg.steps:
+                return seg.name
+            t -= seg.steps
+        return "done"
+
+    def select_action(self, obs: dict) -> np.ndarray:
+        """Next action (float32[6], LeRobot units) from the observation dict."""
+        if "environment_state" not in obs:
+            raise ValueError("ScriptedExpert needs obs['environment_state']: create the env with "
+                             "obs_type='pixels_agent_pos_env_state' or 'state'")
+        if not self._segments:
+            self._plan(np.asarray(obs["agent_pos"]), np.asarray(obs["environment_state"]))
+        t, start = self._t, self._start
+        self._t += 1
+        for seg in self._segments:
+            if t < seg.steps:
+                s = (t + 1) / seg.steps
+                s = s * s * (3 - 2 * s)  # smoothstep: zero velocity at both ends
+                return (start + s * (seg.target - start)).astype(np.float32)
+            t -= seg.steps
+            start = seg.target
+        return start.astype(np.float32)

@@ -1,0 +1,168 @@
+"""LeRobot env plugin: makes ``--env.type=so101_pick_place`` build ``so101_sim/PickPlace-v0``.
+
+Usage with lerobot 0.6.1 (the ``discover_packages_path`` argument imports this module, which
+registers the config below with draccus before the command line is parsed)::
+
+    lerobot-eval --env.type=so101_pick_place \\
+        --env.discover_packages_path=so101_sim.lerobot_plugin \\
+        --env.image_height=96 --env.image_width=128 \\
+        --policy.path=outputs/train/.../pretrained_model --eval.n_episodes=50 --eval.batch_size=1
+
+In Python, ``import so101_sim.lerobot_plugin`` and then
+``lerobot.envs.factory.make_env(SO101PickPlaceEnvConfig(...), n_envs=1)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any
+
+import gymnasium as gym
+from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.envs.configs import EnvConfig
+from lerobot.envs.utils import NEW_ROLLOUT_OPTION
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
+
+from so101_sim import ENV_ID
+from so101_sim.env import CAMERAS, ENV_STATE_SIZE, OBS_TYPES
+from so101_sim.task import load_task
+from so101_sim.units import FEATURE_NAMES
+
+# lerobot 0.6.1's `load_plugin` lists the submodules of whatever `discover_packages_path`
+# names through `module.__path__`, so a plain module raises AttributeError there. An empty
+# `__path__` lets this module be named directly (it has no submodules to find).
+__path__: list[str] = []
+
+ENV_TYPE = "so101_pick_place"
+ACTION_DIM = len(FEATURE_NAMES)
+
+
+@EnvConfig.register_subclass(ENV_TYPE)
+@dataclass
+class SO101PickPlaceEnvConfig(EnvConfig):
+    """LeRobot config for the SO-101 pick-and-place env (see ``so101_sim.env.PickPlaceEnv``).
+
+    ``features`` are derived from ``obs_type`` and the image size in ``__post_init__`` so a
+    policy built from this config (``make_policy(env_cfg=...)``) expects exactly what the env
+    returns. ``fps`` and the episode cap are fixed by the task file; the fields exist because
+    lerobot reads them, and they are checked against the task instead of silently disagreeing.
+    """
+
+    task: str | None = "pick_place"  # name in envs/ or path to a task TOML
+    fps: int = 30  # must equal the task's [episode] fps
+    episode_length: int = 300  # TimeLimit for lerobot-eval; at most the task's max_steps
+    obs_type: str = "pixels_agent_pos"
+    image_height: int = 480
+    image_width: int = 640
+    render_mode: str | None = "rgb_array"  # lerobot-eval renders videos through env.render()
+    features: dict[str, PolicyFeature] = field(default_factory=dict)
+    features_map: dict[str, str] = field(
+        default_factory=lambda: {
+            ACTION: ACTION,
+            "agent_pos": OBS_STATE,
+            "environment_state": OBS_ENV_STATE,
+            **{f"pixels/{cam}": f"{OBS_IMAGES}.{cam}" for cam in CAMERAS},
+        }
+    )
+
+    def __post_init__(self) -> None:
+        if self.obs_type not in OBS_TYPES:
+            raise ValueError(f"obs_type={self.obs_type!r} is invalid; expected one of {OBS_TYPES}")
+        if not self.task:
+            raise ValueError("task is required: a name in envs/ (e.g. 'pick_place') or a TOML path")
+        spec = load_task(self.task)
+        if self.fps != spec.fps:
+            raise ValueError(f"fps={self.fps} but task {spec.name!r} runs at {spec.fps} Hz; the "
+                             f"control rate comes from the task file, pass --env.fps={spec.fps}")
+        if not 1 <= self.episode_length <= spec.max_steps:
+            raise ValueError(f"episode_length={self.episode_length} is invalid; the env ends "
+                             f"episodes of task {spec.name!r} at max_steps={spec.max_steps}, so "
+                             f"expected 1..{spec.max_steps} (raise max_steps in the task file)")
+        self.features = self._derived_features()
+
+    def _derived_features(self) -> dict[str, PolicyFeature]:
+        """Raw env keys (channel-last images, as the env returns them) -> PolicyFeature."""
+        feats = {
+            ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(ACTION_DIM,)),
+            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(ACTION_DIM,)),
+        }
+        if self.obs_type != "state":
+            shape = (self.image_height, self.image_width, 3)
+            for cam in CAMERAS:
+                feats[f"pixels/{cam}"] = PolicyFeature(type=FeatureType.VISUAL, shape=shape)
+        if self.obs_type != "pixels_agent_pos":
+            feats["environment_state"] = PolicyFeature(
+                type=FeatureType.ENV, shape=(ENV_STATE_SIZE,))
+        return feats
+
+    @property
+    def package_name(self) -> str:
+        """Module that registers the gym id (the default, ``gym_<type>``, does not exist)."""
+        return "so101_sim"
+
+    @property
+    def gym_id(self) -> str:
+        """Our single gym id; ``task`` selects the task spec, not the id as in gym_pusht."""
+        return ENV_ID
+
+    @property
+    def gym_kwargs(self) -> dict[str, Any]:
+        """``gym.make`` kwargs. ``max_episode_steps`` adds the TimeLimit whose
+        ``_max_episode_steps`` lerobot-eval's rollout reads."""
+        return {
+            "task": self.task,
+            "obs_type": self.obs_type,
+            "image_size": (self.image_height, self.image_width),
+            "render_mode": self.render_mode,
+            "max_episode_steps": self.episode_length,
+        }
+
+    def create_envs(
+        self, n_envs: int, use_async_envs: bool = False
+    ) -> dict[str, dict[int, gym.vector.VectorEnv]]:
+        """``{type: {0: VectorEnv}}`` like the base class, with each env wrapped in
+        ``LeRobotRolloutAdapter`` (the base class offers no hook for wrappers)."""
+        if n_envs < 1:
+            raise ValueError(f"n_envs={n_envs} is invalid; expected at least 1")
+        make_one = partial(_make_wrapped_env, self.gym_id, self.disable_env_checker,
+                           self.gym_kwargs)
+        if use_async_envs and n_envs > 1:
+            vec: gym.vector.VectorEnv = gym.vector.AsyncVectorEnv(
+                [make_one] * n_envs, context="forkserver",
+                autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+        else:
+            vec = gym.vector.SyncVectorEnv(
+                [make_one] * n_envs, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+        return {self.type: {0: vec}}
+
+
+class LeRobotRolloutAdapter(gym.Wrapper):
+    """Bridges two lerobot-eval conventions that ``PickPlaceEnv`` does not follow itself.
+
+    * ``rollout()`` resets with ``options={NEW_ROLLOUT_OPTION: True}``; ``PickPlaceEnv``
+      rejects unknown reset options (to catch typos), so that key is dropped here.
+    * ``rollout()`` sets ``observation["task"]`` from ``task_description`` and otherwise
+      from ``task``, which on ``PickPlaceEnv`` is a ``TaskSpec``, not the string language
+      policies expect; ``task_description`` provides the task's description.
+    """
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self.task_description: str = env.unwrapped.task.description
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, Any]]:
+        kept = {k: v for k, v in (options or {}).items() if k != NEW_ROLLOUT_OPTION}
+        return self.env.reset(seed=seed, options=kept or None)
+
+
+def _make_wrapped_env(gym_id: str, disable_env_checker: bool,
+                      gym_kwargs: dict[str, Any]) -> gym.Env:
+    """Module-level (picklable) env factory for the vector envs."""
+    env = gym.make(gym_id, disable_env_checker=disable_env_checker, **gym_kwargs)
+    return LeRobotRolloutAdapter(env)
+
+
+__all__ = ["ENV_TYPE", "LeRobotRolloutAdapter", "SO101PickPlaceEnvConfig"]

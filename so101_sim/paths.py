@@ -1,0 +1,34 @@
+"""Where the package's data folders (assets/, envs/, policy/) live.
+
+In a source checkout they sit next to the package; in a wheel they are shipped inside it
+(see `[tool.hatch.build.targets.wheel.force-include]` in pyproject.toml).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+_PKG = Path(__file__).resolve().parent
+
+
+def data_dir(name: str) -> Path:
+    """Return the folder `name` ("assets", "envs" or "policy"), installed or from the repo."""
+    for candidate in (_PKG / name, _PKG.parent / name):
+        if candidate.is_dir():
+            return candidate
+    raise FileNotFoundError(
+        f"so101_sim data folder {name!r} not found next to {_PKG} or inside it; "
+        "the installation is incomplete: reinstall so101-sim (pip install --force-reinstall)."
+    )
+
+
+def assets_dir() -> Path:
+    return data_dir("assets")
+
+
+def envs_dir() -> Path:
+    return data_dir("envs")
+
+
+def policy_dir() -> Path:
+    return data_dir("policy")

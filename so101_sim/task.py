@@ -1,0 +1,202 @@
+"""Task specs: the TOML files in envs/ that size and randomise an episode.
+
+A spec is validated on load; every error names the file, the key, what was expected and the
+allowed keys, so a typo in a task file fails loudly instead of silently using a default.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from so101_sim.paths import envs_dir
+
+Range = tuple[float, float]
+
+
+class TaskSpecError(ValueError):
+    """A task spec file is missing, malformed or has an invalid value."""
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """Everything that defines one task variant (see envs/pick_place.toml for the meaning)."""
+
+    name: str
+    description: str
+    fps: int
+    physics_substeps: int
+    max_steps: int
+    terminate_on_success: bool
+    rest_pose: tuple[float, ...]
+    rest_noise: float
+    cube_size: float
+    cube_mass: float
+    cube_x: Range
+    cube_y: Range
+    cube_yaw: Range
+    target_x: Range
+    target_y: Range
+    target_radius: float
+    settle_steps: int
+    max_speed: float
+    release_clearance: float
+    shadows: bool
+    msaa: bool
+    mesh_grid: float
+    source: str = ""
+
+    @property
+    def control_dt(self) -> float:
+        return 1.0 / self.fps
+
+    @property
+    def physics_dt(self) -> float:
+        return 1.0 / (self.fps * self.physics_substeps)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+# (section, key) -> (field name, kind). Kinds: int+, float+, float>=0, bool, str, range, pose6.
+_SCHEMA: dict[str, dict[str, tuple[str, str]]] = {
+    "": {"name": ("name", "str"), "description": ("description", "str")},
+    "episode": {
+        "fps": ("fps", "int+"),
+        "physics_substeps": ("physics_substeps", "int+"),
+        "max_steps": ("max_steps", "int+"),
+        "terminate_on_success": ("terminate_on_success", "bool"),
+    },
+    "robot": {"rest_pose": ("rest_pose", "pose6"), "rest_noise": ("rest_noise", "float>=0")},
+    "cube": {
+        "size": ("cube_size", "float+"),
+        "mass": ("cube_mass", "float+"),
+        "x": ("cube_x", "range"),
+        "y": ("cube_y", "range"),
+        "yaw": ("cube_yaw", "range"),
+    },
+    "target": {
+        "x": ("target_x", "range"),
+        "y": ("target_y", "range"),
+        "radius": ("target_radius", "float+"),
+    },
+    "success": {
+        "settle_steps": ("settle_steps", "int+"),
+        "max_speed": ("max_speed", "float+"),
+        "release_clearance": ("release_clearance", "float>=0"),
+    },
+    "render": {
+        "shadows": ("shadows", "bool"),
+        "msaa": ("msaa", "bool"),
+        "mesh_grid": ("mesh_grid", "float>=0"),
+    },
+}
+_DEFAULTS = {"rest_noise": 0.0, "terminate_on_success": True, "shadows": False, "msaa": False,
+             "mesh_grid": 0.0, "description": "Pick up the red cube and place it on the target."}
+
+_EXPECTED = {
+    "int+": "a positive integer",
+    "float+": "a positive number",
+    "float>=0": "a number >= 0",
+    "bool": "true or false",
+    "str": "a string",
+    "range": "[low, high] with low <= high",
+    "pose6": "a list of 6 numbers (LeRobot units)",
+}
+
+
+def _is_num(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _convert(value: Any, kind: str) -> Any | None:
+    """Return the converted value, or None when it does not match `kind`."""
+    if kind == "int+":
+        is_int = isinstance(value, int) and not isinstance(value, bool)
+        return value if is_int and value > 0 else None
+    if kind == "float+":
+        return float(value) if _is_num(value) and value > 0 else None
+    if kind == "float>=0":
+        return float(value) if _is_num(value) and value >= 0 else None
+    if kind == "bool":
+        return value if isinstance(value, bool) else None
+    if kind == "str":
+        return value if isinstance(value, str) else None
+    if kind == "range":
+        ok = isinstance(value, list) and len(value) == 2 and all(map(_is_num, value))
+        return (float(value[0]), float(value[1])) if ok and value[0] <= value[1] else None
+    if kind == "pose6":
+        ok = isinstance(value, list) and len(value) == 6 and all(map(_is_num, value))
+        return tuple(float(v) for v in value) if ok else None
+    raise AssertionError(kind)
+
+
+def available_tasks() -> list[str]:
+    return sorted(p.stem for p in envs_dir().glob("*.toml"))
+
+
+def resolve_task_path(task: str | Path) -> Path:
+    """A task name in envs/ or a path to a TOML file."""
+    path = Path(task)
+    if path.suffix == ".toml" or path.exists():
+        if not path.is_file():
+            raise TaskSpecError(f"task file {str(path)!r} does not exist; pass a name from "
+                                f"{available_tasks()} or an existing .toml path")
+        return path
+    candidate = envs_dir() / f"{task}.toml"
+    if not candidate.is_file():
+        raise TaskSpecError(f"unknown task {str(task)!r}; expected one of {available_tasks()} "
+                            "or a path to a task .toml file")
+    return candidate
+
+
+def load_task(task: str | Path | TaskSpec = "pick_place") -> TaskSpec:
+    """Load and validate a task spec by name or path."""
+    if isinstance(task, TaskSpec):
+        return task
+    path = resolve_task_path(task)
+    try:
+        raw = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise TaskSpecError(f"{path}: not valid TOML ({exc})") from exc
+    return parse_task(raw, source=str(path))
+
+
+def parse_task(raw: dict[str, Any], source: str = "<dict>") -> TaskSpec:
+    values: dict[str, Any] = dict(_DEFAULTS)
+    for section, content in raw.items():
+        if isinstance(content, dict):
+            if section not in _SCHEMA or section == "":
+                raise TaskSpecError(
+                    f"{source}: unknown section [{section}]; allowed sections: "
+                    f"{sorted(s for s in _SCHEMA if s)}")
+            items = content.items()
+            schema = _SCHEMA[section]
+        else:
+            items = [(section, content)]
+            section, schema = "", _SCHEMA[""]
+        for key, value in items:
+            qualified = f"{section}.{key}" if section else key
+            if key not in schema:
+                where = f"[{section}]" if section else "the top level"
+                raise TaskSpecError(f"{source}: unknown key {qualified!r}; allowed keys in "
+                                    f"{where}: {sorted(schema)}")
+            field_name, kind = schema[key]
+            converted = _convert(value, kind)
+            if converted is None:
+                raise TaskSpecError(f"{source}: {qualified} = {value!r} is invalid; expected "
+                                    f"{_EXPECTED[kind]}")
+            values[field_name] = converted
+    required = [f.name for f in fields(TaskSpec) if f.name not in values and f.name != "source"]
+    if required:
+        keys = [f"{s}.{k}" if s else k for s, sch in _SCHEMA.items() for k, (fn, _) in sch.items()
+                if fn in required]
+        raise TaskSpecError(f"{source}: missing required keys {keys}")
+    spec = TaskSpec(**values, source=source)
+    if spec.cube_size < 0.01 or spec.cube_size > 0.05:
+        raise TaskSpecError(f"{source}: cube.size = {spec.cube_size} is invalid; expected "
+                            "0.01 .. 0.05 m (the gripper opens to about 6 cm)")
+    return spec

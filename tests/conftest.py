@@ -1,0 +1,30 @@
+"""Shared fixtures. Nothing in the tests may download: the hub is switched off."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+import numpy as np
+import pytest
+
+from so101_sim.env import PickPlaceEnv
+
+REST = np.array([-10.374, -81.670, 77.846, 2.681, 123.209, 6.495], dtype=np.float32)
+SMALL = (48, 64)
+
+
+@pytest.fixture
+def pixel_env():
+    env = PickPlaceEnv(image_size=SMALL, obs_type="pixels_agent_pos_env_state",
+                       render_mode="rgb_array")
+    yield env
+    env.close()
+
+
+@pytest.fixture
+def state_env():
+    env = PickPlaceEnv(obs_type="state")
+    yield env
+    env.close()

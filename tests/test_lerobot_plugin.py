@@ -1,0 +1,165 @@
+"""The LeRobot env plugin, exercised through lerobot 0.6.1's own factory and preprocessing."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from lerobot.configs import FeatureType
+from lerobot.envs.configs import EnvConfig
+from lerobot.envs.factory import make_env, make_env_config
+from lerobot.envs.utils import (
+    NEW_ROLLOUT_OPTION,
+    close_envs,
+    env_to_policy_features,
+    preprocess_observation,
+)
+
+from so101_sim.lerobot_plugin import ENV_TYPE, SO101PickPlaceEnvConfig
+from so101_sim.task import load_task
+
+H, W = 96, 128
+EPISODE_LENGTH = 4
+
+
+@pytest.fixture(scope="module", params=["pixels_agent_pos", "pixels_agent_pos_env_state"])
+def built(request: pytest.FixtureRequest):
+    """(config, vector env) built by lerobot's make_env, shared by the tests of a module."""
+    cfg = make_env_config(ENV_TYPE, obs_type=request.param, image_height=H, image_width=W,
+                          episode_length=EPISODE_LENGTH)
+    envs = make_env(cfg, n_envs=1, use_async_envs=False)
+    yield cfg, envs
+    close_envs(envs)
+
+
+def _vec(envs: dict) -> gym.vector.VectorEnv:
+    assert list(envs) == [ENV_TYPE] and list(envs[ENV_TYPE]) == [0]
+    return envs[ENV_TYPE][0]
+
+
+def test_import_registers_env_type() -> None:
+    assert ENV_TYPE in EnvConfig.get_known_choices()
+    assert EnvConfig.get_choice_class(ENV_TYPE) is SO101PickPlaceEnvConfig
+    cfg = make_env_config(ENV_TYPE)
+    assert (cfg.task, cfg.fps, cfg.episode_length, cfg.obs_type) == (
+        "pick_place", 30, 300, "pixels_agent_pos")
+    assert (cfg.image_height, cfg.image_width, cfg.render_mode) == (480, 640, "rgb_array")
+    assert cfg.type == ENV_TYPE and cfg.gym_id == "so101_sim/PickPlace-v0"
+
+
+@pytest.mark.parametrize(("obs_type", "expected"), [
+    ("pixels_agent_pos", {"action", "agent_pos", "pixels/front", "pixels/side"}),
+    ("pixels_agent_pos_env_state",
+     {"action", "agent_pos", "pixels/front", "pixels/side", "environment_state"}),
+    ("state", {"action", "agent_pos", "environment_state"}),
+])
+def test_features_follow_fields(obs_type: str, expected: set[str]) -> None:
+    cfg = SO101PickPlaceEnvConfig(obs_type=obs_type, image_height=H, image_width=W)
+    assert set(cfg.features) == expected
+    policy_features = env_to_policy_features(cfg)  # fails if features_map lacks a key
+    assert policy_features["action"].shape == (6,)
+    assert policy_features["observation.state"].shape == (6,)
+    if "pixels/front" in expected:
+        assert cfg.features["pixels/front"].shape == (H, W, 3)
+        assert policy_features["observation.images.side"].shape == (3, H, W)
+        assert policy_features["observation.images.side"].type is FeatureType.VISUAL
+    if "environment_state" in expected:
+        assert policy_features["observation.environment_state"].type is FeatureType.ENV
+
+
+@pytest.mark.parametrize("kwargs", [
+    {"obs_type": "pixels"}, {"fps": 10}, {"episode_length": 301}, {"episode_length": 0},
+    {"task": ""},
+])
+def test_invalid_fields_are_rejected(kwargs: dict) -> None:
+    with pytest.raises(ValueError):
+        SO101PickPlaceEnvConfig(**kwargs)
+
+
+def test_make_env_reset_and_preprocess(built) -> None:
+    cfg, envs = built
+    vec = _vec(envs)
+    assert isinstance(vec, gym.vector.SyncVectorEnv) and vec.num_envs == 1
+    # lerobot-eval's rollout resets with this option and reads these attributes.
+    obs, _ = vec.reset(seed=[0], options={NEW_ROLLOUT_OPTION: True})
+    assert vec.call("_max_episode_steps")[0] == EPISODE_LENGTH
+    assert isinstance(vec.call("task_description")[0], str)
+    assert vec.metadata["render_fps"] == cfg.fps
+
+    batch = preprocess_observation(obs)
+    for cam in ("front", "side"):
+        img = batch[f"observation.images.{cam}"]
+        assert img.dtype == torch.float32 and tuple(img.shape) == (1, 3, H, W)
+        assert 0.0 <= img.min() <= img.max() <= 1.0 and img.max() > 0
+    assert tuple(batch["observation.state"].shape) == (1, 6)
+
+    # Every declared feature appears, under its mapped name, with the declared shape.
+    expected = env_to_policy_features(cfg)
+    observed = {k: tuple(v.shape[1:]) for k, v in batch.items()}
+    assert set(observed) == set(expected) - {"action"}
+    for key, feature in expected.items():
+        if key != "action":
+            assert observed[key] == feature.shape, key
+    assert vec.single_action_space.shape == cfg.features["action"].shape
+
+
+def test_step_rest_pose_reports_success(built) -> None:
+    _, envs = built
+    vec = _vec(envs)
+    vec.reset(seed=[1])
+    rest = np.asarray(load_task("pick_place").rest_pose, dtype=np.float32)[None]
+    obs, reward, terminated, truncated, info = vec.step(rest)
+    assert "is_success" in info and info["is_success"].shape == (1,)
+    assert not info["is_success"][0] and reward.shape == (1,)
+    assert obs["agent_pos"].shape == (1, 6)
+    np.testing.assert_allclose(obs["agent_pos"][0], rest[0], atol=5.0)  # held near rest
+    # The episode cap from the config truncates through gym's TimeLimit.
+    for _ in range(EPISODE_LENGTH - 1):
+        *_, terminated, truncated, info = vec.step(rest)
+    assert truncated[0] and not terminated[0]
+    assert "final_info" in info and "is_success" in info["final_info"]
+
+
+class _RestPosePolicy(torch.nn.Module):
+    """Stands in for a trained policy: holds the rest pose and records what it was given."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.rest = torch.tensor(load_task("pick_place").rest_pose, dtype=torch.float32)
+        self.seen: list[dict] = []
+
+    def reset(self) -> None:
+        self.seen.clear()
+
+    def select_action(self, batch: dict) -> torch.Tensor:
+        self.seen.append(batch)
+        return self.rest.expand(batch["observation.state"].shape[0], -1).clone()
+
+
+def test_lerobot_eval_rollout_runs_an_episode(built) -> None:
+    """lerobot-eval's own rollout loop (reset options, TimeLimit, task text, is_success)."""
+    from lerobot.processor import (
+        PolicyProcessorPipeline,
+        policy_action_to_transition,
+        transition_to_policy_action,
+    )
+    from lerobot.scripts.lerobot_eval import rollout
+
+    cfg, envs = built
+    env_pre, env_post = cfg.get_env_processors()
+    post = PolicyProcessorPipeline(steps=[], to_transition=policy_action_to_transition,
+                                   to_output=transition_to_policy_action)
+    policy = _RestPosePolicy()
+    out = rollout(_vec(envs), policy, env_pre, env_post, PolicyProcessorPipeline(steps=[]), post,
+                  seeds=[3])
+    assert tuple(out["action"].shape) == (1, EPISODE_LENGTH, 6)
+    assert out["done"][0, -1] and not out["success"].any()
+    first = policy.seen[0]
+    assert isinstance(first["task"][0], str) and first["task"][0]
+    assert tuple(first["observation.images.front"].shape) == (1, 3, H, W)

@@ -1,0 +1,69 @@
+"""Task specs load from envs/ or a path, and invalid ones fail with a message that helps."""
+
+from __future__ import annotations
+
+import pytest
+
+from so101_sim.paths import envs_dir
+from so101_sim.task import TaskSpecError, available_tasks, load_task
+
+
+def _write(tmp_path, old: str, new: str):
+    path = tmp_path / "task.toml"
+    path.write_text((envs_dir() / "pick_place.toml").read_text().replace(old, new))
+    return path
+
+
+def test_default_task_by_name_and_by_path():
+    assert "pick_place" in available_tasks()
+    by_name = load_task("pick_place")
+    by_path = load_task(envs_dir() / "pick_place.toml")
+    assert by_name.to_dict() | {"source": ""} == by_path.to_dict() | {"source": ""}
+    assert by_name.rest_pose == (-10.374, -81.670, 77.846, 2.681, 123.209, 6.495)
+    assert 0.025 <= by_name.cube_size <= 0.03
+
+
+def test_unknown_task_name_lists_the_choices():
+    with pytest.raises(TaskSpecError, match=r"unknown task 'pick_plaec'.*pick_place"):
+        load_task("pick_plaec")
+
+
+def test_missing_task_file():
+    with pytest.raises(TaskSpecError, match="does not exist"):
+        load_task("/nonexistent/task.toml")
+
+
+def test_unknown_key_names_key_and_allowed_keys(tmp_path):
+    path = _write(tmp_path, "mass = 0.015", "colour = 'red'")
+    with pytest.raises(TaskSpecError, match=r"unknown key 'cube.colour'.*\['mass', 'size', 'x'"):
+        load_task(path)
+
+
+def test_unknown_section(tmp_path):
+    path = _write(tmp_path, "[render]", "[rendering]")
+    with pytest.raises(TaskSpecError, match=r"unknown section \[rendering\]"):
+        load_task(path)
+
+
+@pytest.mark.parametrize("old, new, match", [
+    ("fps = 30", "fps = 0", r"episode.fps = 0 is invalid; expected a positive integer"),
+    ("x = [0.17, 0.25]", "x = [0.25, 0.17]", r"cube.x = \[0.25, 0.17\] is invalid; expected \[low"),
+    ("shadows = false", "shadows = 'yes'", r"render.shadows = 'yes' is invalid; expected true"),
+    ("size = 0.025", "size = 0.2", r"cube.size = 0.2 is invalid; expected 0.01 .. 0.05"),
+    ("rest_pose = [", "rest_pose = [1.0, ", r"robot.rest_pose .* expected a list of 6 numbers"),
+])
+def test_invalid_values_name_key_and_expectation(tmp_path, old, new, match):
+    with pytest.raises(TaskSpecError, match=match):
+        load_task(_write(tmp_path, old, new))
+
+
+def test_missing_required_key(tmp_path):
+    with pytest.raises(TaskSpecError, match=r"missing required keys \['target.radius'\]"):
+        load_task(_write(tmp_path, "radius = 0.04", ""))
+
+
+def test_broken_toml(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text("[cube\nsize = ")
+    with pytest.raises(TaskSpecError, match="not valid TOML"):
+        load_task(path)
