@@ -29,6 +29,31 @@ def _demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _record(args: argparse.Namespace) -> int:
+    from so101_sim.recording import record
+
+    try:
+        s = record(Path(args.out), args.episodes, task=args.task, seed_start=args.seed_start,
+                   image_size=args.image_size, keep_failures=args.keep_failures,
+                   resume=args.resume, workers=args.workers)
+    except KeyboardInterrupt:
+        print(f"so101-sim record: interrupted; {args.out} holds every completed episode "
+              "(continue with --resume)", file=sys.stderr)
+        return 130
+    print(f"{args.out}: {s['episodes']} episodes ({s['new_episodes']} new; "
+          f"{s['successes']}/{s['tried']} seeds succeeded), "
+          f"{s['env_steps']} env-steps in {s['seconds']:.1f} s = {s['steps_per_s']:.1f} steps/s")
+    return 0
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from so101_sim.recording import replay
+
+    dev = replay(Path(args.dataset), args.episode)
+    print(f"episode {args.episode}: max |observation.state - re-simulated agent_pos| = {dev:.3g}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="so101-sim", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -42,6 +67,27 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--image-size", type=parse_image_size, default=(480, 640),
                       help="HEIGHTxWIDTH of each camera (default 480x640)")
     demo.set_defaults(func=_demo)
+
+    rec = sub.add_parser("record", help="record scripted-expert demonstrations as a "
+                                        "LeRobotDataset v3 (training seeds only)")
+    rec.add_argument("--task", default="pick_place", help="task name in envs/ or a .toml path")
+    rec.add_argument("--episodes", type=int, required=True, help="episodes wanted in the dataset")
+    rec.add_argument("--out", required=True, help="dataset folder (the LeRobotDataset root)")
+    rec.add_argument("--seed-start", type=int, default=0, help="first reset seed (0..99999)")
+    rec.add_argument("--image-size", type=parse_image_size, default=(480, 640),
+                     help="HEIGHTxWIDTH of each camera (default 480x640)")
+    rec.add_argument("--keep-failures", action="store_true",
+                     help="also keep episodes the expert failed")
+    rec.add_argument("--resume", action="store_true",
+                     help="continue an existing dataset up to --episodes without repeating a seed")
+    rec.add_argument("--workers", type=int, default=1, help="only 1 is supported for now")
+    rec.set_defaults(func=_record)
+
+    rep = sub.add_parser("replay", help="re-simulate a recorded episode from its seed and "
+                                        "actions; print the largest state deviation")
+    rep.add_argument("dataset", help="dataset folder written by `so101-sim record`")
+    rep.add_argument("--episode", type=int, default=0)
+    rep.set_defaults(func=_replay)
     return parser
 
 

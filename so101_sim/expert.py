@@ -35,18 +35,32 @@ class ScriptedExpert:
     """Policy-like object: ``reset(seed)`` then ``select_action(obs)`` every step."""
 
     def __init__(self, task: str | TaskSpec = "pick_place", clearance: float = 0.004,
-                 hover: float = 0.06, carry_height: float = 0.08) -> None:
+                 hover: float = 0.06, carry_height: float = 0.08, jitter: bool = True) -> None:
         self.task = load_task(task)
         model, _ = build_model(self.task)
         self.ik = TopDownIK(model)
-        self.clearance, self.hover, self.carry_height = clearance, hover, carry_height
+        self.clearance, self.base_hover, self.base_carry = clearance, hover, carry_height
+        self.jitter = jitter
+        self.hover, self.carry_height = hover, carry_height
+        self._speed = np.ones(8)
         self._segments: list[_Segment] = []
         self._t = 0
         self._start = np.zeros(6)
 
     def reset(self, seed: int | None = None) -> None:
+        """Start a new episode; with `jitter`, speed and waypoints vary per seed so the demos
+        are not one trajectory (same seed, same jitter)."""
         self._segments = []
         self._t = 0
+        self.hover, self.carry_height, self._speed = self.base_hover, self.base_carry, np.ones(8)
+        if self.jitter:
+            rng = np.random.default_rng(seed)
+            self.hover = self.base_hover + rng.uniform(-0.015, 0.015)
+            self.carry_height = self.base_carry + rng.uniform(-0.02, 0.02)
+            # Duration factors per segment; moves with the cube in hand are only slowed down
+            # (faster carries throw the cube).
+            lo = np.array([0.8, 0.85, 1.0, 1.0, 1.0, 1.0, 0.9, 0.8])
+            self._speed = rng.uniform(lo, lo + 0.35)
 
     def _plan(self, agent_pos: np.ndarray, env_state: np.ndarray) -> None:
         half = self.task.cube_size / 2
@@ -69,25 +83,34 @@ class ScriptedExpert:
 
         grasp = cube + np.array([0, 0, 0.002]) - grasp_offset * axis
         q_grasp, _ = self.ik.solve(grasp, yaw, q_above)
-        q_lift, _ = self.ik.solve(grasp + np.array([0, 0, self.carry_height]), yaw, q_grasp)
         # Place: the cube (not the tool) goes onto the target centre.
         place_xy = np.asarray(target[:2]) - grasp_offset * axis[:2]
-        q_carry, _ = self.ik.solve(np.r_[place_xy, grasp[2] + self.carry_height], yaw, q_lift)
+        # Carry as high as asked where the arm reaches straight up over both ends; far
+        # corners of the workspace are lower (an unreachable waypoint would swing the cube).
+        height = self.carry_height
+        while True:
+            q_lift, err_lift = self.ik.solve(grasp + np.array([0, 0, height]), yaw, q_grasp)
+            q_carry, err_carry = self.ik.solve(np.r_[place_xy, grasp[2] + height], yaw, q_lift)
+            if max(err_lift, err_carry) < 2e-3 or height <= 0.04:
+                break
+            height -= 0.01
         q_place, _ = self.ik.solve(np.r_[place_xy, grasp[2] + 0.004], yaw, q_carry)
 
         def act(q5: np.ndarray, grip: float) -> np.ndarray:
             return np.r_[radians_to_lerobot(np.r_[q5, 0.0])[:5], grip]
 
-        self._segments = [
-            _Segment("approach", 35, act(q_above, OPEN)),
-            _Segment("descend", 20, act(q_grasp, OPEN)),
-            _Segment("close", 12, act(q_grasp, CLOSED)),
-            _Segment("lift", 20, act(q_lift, CLOSED)),
-            _Segment("carry", 35, act(q_carry, CLOSED)),
-            _Segment("lower", 20, act(q_place, CLOSED)),
-            _Segment("release", 10, act(q_place, OPEN)),
-            _Segment("retreat", 15, act(q_carry, OPEN)),
+        plan = [
+            ("approach", 35, act(q_above, OPEN)),
+            ("descend", 20, act(q_grasp, OPEN)),
+            ("close", 12, act(q_grasp, CLOSED)),
+            ("lift", 20, act(q_lift, CLOSED)),
+            ("carry", 35, act(q_carry, CLOSED)),
+            ("lower", 20, act(q_place, CLOSED)),
+            ("release", 10, act(q_place, OPEN)),
+            ("retreat", 15, act(q_carry, OPEN)),
         ]
+        self._segments = [_Segment(name, max(4, round(steps * k)), target)
+                          for (name, steps, target), k in zip(plan, self._speed, strict=True)]
         self._start = np.asarray(agent_pos, dtype=np.float64).copy()
 
     @property
