@@ -1,0 +1,62 @@
+"""Scripted-expert success rate over consecutive seeds, with its 95% Wilson interval.
+
+    .venv/bin/python benchmarks/expert_success.py --seeds 500 [--seed-start 0]
+
+State observations only (no rendering): success is the env's own info["is_success"].
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import math
+import time
+
+from tqdm import tqdm
+
+from so101_sim.env import PickPlaceEnv
+from so101_sim.expert import ScriptedExpert
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=500)
+    parser.add_argument("--seed-start", type=int, default=0)
+    parser.add_argument("--task", default="pick_place")
+    args = parser.parse_args()
+
+    env = PickPlaceEnv(task=args.task, obs_type="state")
+    expert = ScriptedExpert(args.task)
+    modes: collections.Counter[str] = collections.Counter()
+    failed: list[tuple[int, str]] = []
+    t0 = time.perf_counter()
+    for seed in tqdm(range(args.seed_start, args.seed_start + args.seeds), unit="episode"):
+        obs, _ = env.reset(seed=seed)
+        expert.reset(seed)
+        while True:
+            obs, _, terminated, truncated, info = env.step(expert.select_action(obs))
+            if terminated or truncated:
+                break
+        mode = info["failure_mode"] or "success"
+        modes[mode] += 1
+        if mode != "success":
+            failed.append((seed, mode))
+    k, n = modes["success"], args.seeds
+    lo, hi = wilson(k, n)
+    print(f"expert success {k}/{n} = {100 * k / n:.2f}% (95% Wilson [{100 * lo:.2f}, "
+          f"{100 * hi:.2f}]) seeds {args.seed_start}..{args.seed_start + n - 1}, "
+          f"{time.perf_counter() - t0:.1f} s")
+    print("outcomes:", dict(modes))
+    if failed:
+        print("failed seeds:", failed)
+
+
+if __name__ == "__main__":
+    main()
