@@ -1,0 +1,311 @@
+"""Train lerobot's DiffusionPolicy on a recorded LeRobotDataset, fast on CPU, with EMA weights.
+
+What differs from `lerobot-train`: frames are decoded and resized once into memory
+(`frame_cache`), batches are gathered by array indexing with lerobot's padding rules, an EMA copy
+of the weights is kept (diffusers' `EMAModel`, the seed's power 0.75 / max 0.9999) and is what
+gets saved for evaluation, and `--resume` restores every RNG so a resumed run is the same run.
+
+Run layout under `out/`:
+    checkpoints/step_NNNNNNN/pretrained_model/   EMA weights in lerobot's format (+ processors)
+    checkpoints/step_NNNNNNN/training_state.pt   raw weights, optimiser, scheduler, EMA, RNGs
+    pretrained_model/                            the final EMA policy
+    train_log.jsonl                              step, loss, lr, samples/s, EMA decay
+    frame_cache/                                 decoded frames (.npy)
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import shutil
+import signal
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from so101_sim.frame_cache import load_frames
+from so101_sim.presets import Preset, load_preset, make_config, policy_features
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+TRAIN_INFO = "so101_sim_train.json"
+
+
+class TrainError(RuntimeError):
+    """Bad training input (dataset, preset, run folder)."""
+
+
+# ----------------------------------------------------------------------------- data
+
+
+@dataclass
+class DemoArrays:
+    """Everything training reads, in memory: states, actions, frames and episode bounds."""
+
+    state: np.ndarray                 # [N, 6] float32
+    action: np.ndarray                # [N, 6] float32
+    frames: dict[str, np.ndarray]     # camera key -> uint8 [N, 3, h, w]
+    episode_from: np.ndarray          # [N] first index of each frame's episode
+    episode_to: np.ndarray            # [N] one past its last index
+    starts: np.ndarray                # frame indices a sample may be centred on
+
+
+def load_demos(dataset, preset: Preset, cache_dir: Path | None) -> DemoArrays:
+    """Read a LeRobotDataset into `DemoArrays` for `preset` (frames resized to its image size)."""
+    cfg = preset.diffusion
+    hf = dataset.hf_dataset.with_format("numpy")
+    state = np.asarray(hf["observation.state"], dtype=np.float32)
+    action = np.asarray(hf["action"], dtype=np.float32)
+    index = np.asarray(hf["index"])
+    if not np.array_equal(index, np.arange(len(index))):
+        raise TrainError(f"dataset {dataset.meta.root}: frame indices are not 0..N-1 in order; "
+                         "train on a dataset written by `so101-sim record` or lerobot")
+    ep_from = np.empty(len(index), dtype=np.int64)
+    ep_to = np.empty(len(index), dtype=np.int64)
+    starts = []
+    drop = int(cfg["drop_n_last_frames"])
+    for row in dataset.meta.episodes:
+        lo, hi = int(row["dataset_from_index"]), int(row["dataset_to_index"])
+        ep_from[lo:hi], ep_to[lo:hi] = lo, hi
+        starts.append(np.arange(lo, max(lo + 1, hi - drop)))
+    frames = load_frames(dataset, preset.image_size, cache_dir)
+    return DemoArrays(state, action, frames, ep_from, ep_to, np.concatenate(starts))
+
+
+def gather_batch(demos: DemoArrays, idx: np.ndarray, n_obs: int, horizon: int) -> dict:
+    """A training batch centred on frames `idx`, padded at episode edges as lerobot does.
+
+    Observation steps are t-n_obs+1..t and action steps t-n_obs+1..t-n_obs+horizon; indices
+    outside the episode repeat its edge frame and are flagged in `action_is_pad`.
+    """
+    lo, hi = demos.episode_from[idx, None], demos.episode_to[idx, None] - 1
+    obs_raw = idx[:, None] + np.arange(1 - n_obs, 1)[None]
+    act_raw = idx[:, None] + np.arange(1 - n_obs, 1 - n_obs + horizon)[None]
+    obs_i = np.clip(obs_raw, lo, hi)
+    act_i = np.clip(act_raw, lo, hi)
+    batch: dict[str, Any] = {
+        "observation.state": torch.from_numpy(demos.state[obs_i]),
+        "action": torch.from_numpy(demos.action[act_i]),
+        "action_is_pad": torch.from_numpy((act_raw < lo) | (act_raw > hi)),
+    }
+    for key, arr in demos.frames.items():
+        batch[key] = torch.from_numpy(arr[obs_i]).float().div_(255.0)
+    return batch
+
+
+def normalization_stats(dataset, preset: Preset) -> dict[str, dict[str, torch.Tensor]]:
+    """State/action stats from the dataset; pixel mean/std per the preset."""
+    stats: dict[str, dict[str, torch.Tensor]] = {}
+    for key in ("observation.state", "action"):
+        stats[key] = {k: torch.as_tensor(np.asarray(v), dtype=torch.float32)
+                      for k, v in dataset.meta.stats[key].items()}
+    for key in dataset.meta.video_keys:
+        if preset.image_normalize == "imagenet":
+            mean, std = torch.tensor(IMAGENET_MEAN), torch.tensor(IMAGENET_STD)
+        else:
+            mean = torch.as_tensor(np.asarray(dataset.meta.stats[key]["mean"])).reshape(3)
+            std = torch.as_tensor(np.asarray(dataset.meta.stats[key]["std"])).reshape(3)
+        stats[key] = {"mean": mean.reshape(3, 1, 1).float(), "std": std.reshape(3, 1, 1).float()}
+    return stats
+
+
+# ----------------------------------------------------------------------------- run
+
+
+@dataclass
+class TrainResult:
+    out: Path
+    step: int
+    final_loss: float
+    wall_s: float
+    samples_per_s: float
+    pretrained_dir: Path
+
+
+def _open_dataset(path: Path):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    if not (path / "meta" / "info.json").is_file():
+        raise TrainError(f"--dataset {str(path)!r} is not a LeRobotDataset folder (no "
+                         "meta/info.json); record one with `so101-sim record --out DIR`")
+    return LeRobotDataset(f"local/{path.name}", root=path)
+
+
+def _checkpoints(out: Path) -> list[Path]:
+    return sorted(p.parent for p in (out / "checkpoints").glob("step_*/training_state.pt"))
+
+
+def _save_pretrained(policy, ema, pre, post, dest: Path, info: dict) -> None:
+    """EMA weights in lerobot's pretrained format, written atomically."""
+    tmp = dest.with_name(dest.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shadow = copy.deepcopy(policy)
+    ema.copy_to(shadow.parameters())
+    shadow.save_pretrained(tmp)
+    pre.save_pretrained(tmp)
+    post.save_pretrained(tmp)
+    (tmp / TRAIN_INFO).write_text(json.dumps(info, indent=2) + "\n")
+    shutil.rmtree(dest, ignore_errors=True)
+    tmp.rename(dest)
+
+
+def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | None = None,
+          batch_size: int | None = None, resume: bool = False, keep_checkpoints: int = 3,
+          progress: bool = True) -> TrainResult:
+    """Train `preset_name` on the dataset at `dataset_dir`; see the module docstring."""
+    from diffusers.optimization import get_scheduler
+    from diffusers.training_utils import EMAModel
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    preset = load_preset(preset_name)
+    ts = preset.train
+    steps = int(steps if steps is not None else ts.steps)
+    batch_size = int(batch_size if batch_size is not None else ts.batch_size)
+    if steps < 1 or batch_size < 1:
+        raise TrainError(f"--steps {steps} and --batch-size {batch_size} must both be >= 1")
+    out = Path(out)
+    existing = _checkpoints(out)
+    if existing and not resume:
+        raise TrainError(f"{out} already holds checkpoints (last {existing[-1].name}); pass "
+                         "--resume to continue that run or choose another --out")
+    dataset = _open_dataset(Path(dataset_dir))
+    missing = [k for k in ("observation.state", "action") if k not in dataset.meta.features]
+    if missing:
+        raise TrainError(f"dataset {dataset_dir} lacks {missing}; expected a so101-sim recording")
+    cams = tuple(k.split(".")[-1] for k in dataset.meta.video_keys)
+
+    torch.manual_seed(ts.seed)
+    rng = np.random.default_rng(ts.seed)
+    cfg = make_config(preset, *policy_features(preset.image_size, cams,
+                                               dataset.meta.features["action"]["shape"][0]))
+    policy = DiffusionPolicy(cfg)
+    policy.train()
+    pre, post = make_pre_post_processors(cfg, dataset_stats=normalization_stats(dataset, preset))
+    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=cfg.optimizer_lr,
+                                  betas=cfg.optimizer_betas, eps=cfg.optimizer_eps,
+                                  weight_decay=cfg.optimizer_weight_decay)
+    scheduler = get_scheduler(cfg.scheduler_name, optimizer=optimizer,
+                              num_warmup_steps=cfg.scheduler_warmup_steps,
+                              num_training_steps=steps)
+    ema = EMAModel(policy.parameters(), decay=ts.ema_max_decay, min_decay=ts.ema_min_decay,
+                   update_after_step=ts.ema_update_after_step, use_ema_warmup=True,
+                   inv_gamma=ts.ema_inv_gamma, power=ts.ema_power)
+    step, wall_before = 0, 0.0
+    log_path = out / "train_log.jsonl"
+    if existing and resume:
+        state = torch.load(existing[-1] / "training_state.pt", weights_only=False)
+        if state["preset"] != preset.name or state["dataset"] != str(Path(dataset_dir).resolve()):
+            raise TrainError(f"{out} was trained with preset {state['preset']!r} on "
+                             f"{state['dataset']}; resume it with the same --preset and --dataset")
+        policy.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        ema.load_state_dict(state["ema"])
+        torch.set_rng_state(state["torch_rng"])
+        rng.bit_generator.state = state["numpy_rng"]
+        step, wall_before = state["step"], state["wall_s"]
+        if state["steps"] != steps:
+            print(f"so101-sim train: total steps changed {state['steps']} -> {steps}; the cosine "
+                  "schedule is stretched from here on")
+        _truncate_log(log_path, step)
+    start_step = step
+    out.mkdir(parents=True, exist_ok=True)
+    demos = load_demos(dataset, preset, out / "frame_cache")
+    info = {"preset": preset.name, "preset_file": str(preset.path), "dataset": str(dataset_dir),
+            "dataset_episodes": dataset.meta.total_episodes,
+            "dataset_frames": dataset.meta.total_frames,
+            "dataset_image_size": list(dataset.meta.features[dataset.meta.video_keys[0]]
+                                       ["shape"][:2]),
+            "policy_image_size": list(preset.image_size),
+            "image_pipeline": "so101_sim.image_pipeline.resize_frames (bilinear, antialias)",
+            "weights": "EMA", "batch_size": batch_size, "total_steps": steps,
+            "train_settings": asdict(ts)}
+
+    stop = {"signal": None}
+
+    def on_signal(signum, _frame):
+        stop["signal"] = signum
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    n_obs, horizon = cfg.n_obs_steps, cfg.horizon
+
+    def save(at_step: int, wall: float, loss: float) -> Path:
+        ck = out / "checkpoints" / f"step_{at_step:07d}"
+        ck.mkdir(parents=True, exist_ok=True)
+        meta = {**info, "step": at_step, "train_wall_s": round(wall, 1), "last_loss": loss}
+        _save_pretrained(policy, ema, pre, post, ck / "pretrained_model", meta)
+        torch.save({"model": policy.state_dict(), "optimizer": optimizer.state_dict(),
+                    "scheduler": scheduler.state_dict(), "ema": ema.state_dict(),
+                    "torch_rng": torch.get_rng_state(), "numpy_rng": rng.bit_generator.state,
+                    "step": at_step, "steps": steps, "wall_s": wall, "preset": preset.name,
+                    "dataset": str(Path(dataset_dir).resolve())}, ck / "training_state.tmp")
+        (ck / "training_state.tmp").replace(ck / "training_state.pt")
+        for old_ck in _checkpoints(out)[:-keep_checkpoints]:
+            (old_ck / "training_state.pt").unlink()  # keep its EMA policy, drop the bulk
+        return ck
+
+    bar = tqdm(total=steps, initial=step, desc=f"train {preset.name}", unit="step",
+               disable=not progress, dynamic_ncols=True)
+    t0, loss_val, window = time.perf_counter(), math.nan, []
+    log = log_path.open("a")
+    try:
+        while step < steps and stop["signal"] is None:
+            t_step = time.perf_counter()
+            idx = rng.choice(demos.starts, size=batch_size)
+            batch = pre(gather_batch(demos, idx, n_obs, horizon))
+            loss, _ = policy.forward(batch)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            scheduler.step()
+            ema.step(policy.parameters())
+            step += 1
+            loss_val = float(loss.detach())
+            window.append((loss_val, time.perf_counter() - t_step))
+            if step % ts.log_every == 0 or step == steps:
+                mean_loss = float(np.mean([w[0] for w in window]))
+                sps = batch_size * len(window) / sum(w[1] for w in window)
+                log.write(json.dumps({"step": step, "loss": round(mean_loss, 6),
+                                      "lr": scheduler.get_last_lr()[0],
+                                      "samples_per_s": round(sps, 2),
+                                      "ema_decay": round(ema.cur_decay_value or 0.0, 6),
+                                      "wall_s": round(wall_before + time.perf_counter() - t0, 1)})
+                          + "\n")
+                log.flush()
+                bar.set_postfix(loss=f"{mean_loss:.4f}", samples_s=f"{sps:.1f}")
+                window.clear()
+            bar.update(1)
+            if step % ts.checkpoint_every == 0 and step < steps:
+                save(step, wall_before + time.perf_counter() - t0, loss_val)
+        wall = wall_before + time.perf_counter() - t0
+        ck = save(step, wall, loss_val)
+    finally:
+        bar.close()
+        log.close()
+        for s, h in old.items():
+            signal.signal(s, h)
+    if stop["signal"] is not None:
+        raise KeyboardInterrupt(f"stopped by signal {stop['signal']} at step {step}; "
+                                f"checkpoint {ck}")
+    final = out / "pretrained_model"
+    shutil.rmtree(final, ignore_errors=True)
+    shutil.copytree(ck / "pretrained_model", final)
+    run_s = time.perf_counter() - t0
+    return TrainResult(out=out, step=step, final_loss=loss_val, wall_s=wall,
+                       samples_per_s=(step - start_step) * batch_size / max(run_s, 1e-9),
+                       pretrained_dir=final)
+
+
+def _truncate_log(path: Path, step: int) -> None:
+    """Drop log lines past `step` (written after the checkpoint a resume starts from)."""
+    if not path.is_file():
+        return
+    keep = [ln for ln in path.read_text().splitlines() if ln and json.loads(ln)["step"] <= step]
+    path.write_text("".join(ln + "\n" for ln in keep))

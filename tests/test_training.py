@@ -1,0 +1,192 @@
+"""Presets, the trainer's batches, exact resume, and the checkpoint format lerobot loads."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from so101_sim.presets import PresetError, load_preset, make_config, policy_features
+from so101_sim.recording import DEFAULT_REPO_ID, record
+from so101_sim.trainer import TrainError, gather_batch, load_demos, train
+
+SMALL = (48, 64)
+FPS = 30
+
+
+def _tiny_preset(tmp: Path) -> Path:
+    """The cpu preset shrunk so a step takes milliseconds; same fields, same code path."""
+    text = (Path(__file__).parents[1] / "policy" / "presets" / "cpu.toml").read_text()
+    for old, new in [('name = "cpu"', 'name = "tiny"'), ("size = [60, 80]", "size = [24, 32]"),
+                     ("batch_size = 32", "batch_size = 4"), ("steps = 10000", "steps = 4"),
+                     ("checkpoint_every = 500", "checkpoint_every = 2"),
+                     ("log_every = 50", "log_every = 1"), ("crop_shape = [54, 72]",
+                                                           "crop_shape = [22, 30]"),
+                     ("down_dims = [48, 96, 192]", "down_dims = [16, 32, 64]"),
+                     ("diffusion_step_embed_dim = 64", "diffusion_step_embed_dim = 16"),
+                     ("spatial_softmax_num_keypoints = 32", "spatial_softmax_num_keypoints = 8")]:
+        assert old in text, old
+        text = text.replace(old, new)
+    path = tmp / "tiny.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("train") / "ds"
+    record(root, 2, image_size=SMALL, progress=False)
+    return root
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _tiny_preset(tmp_path_factory.mktemp("preset"))
+
+
+def test_seed_preset_has_the_walkthrough_shapes() -> None:
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+
+    preset = load_preset("seed")
+    cfg = make_config(preset, *policy_features(preset.image_size))
+    assert (cfg.n_obs_steps, cfg.horizon, cfg.n_action_steps) == (2, 16, 8)
+    assert cfg.noise_scheduler_type == "DDIM" and cfg.num_inference_steps == 10
+    assert cfg.pretrained_backbone_weights is None and cfg.use_group_norm
+    policy = DiffusionPolicy(cfg).eval()
+    model = policy.diffusion
+    assert model.rgb_encoder.feature_dim == 64
+    assert model.noise_scheduler.config.num_train_timesteps == 100
+    assert model.noise_scheduler.config.beta_schedule == "squaredcos_cap_v2"
+    b = 2
+    batch = {"observation.state": torch.randn(b, 2, 6),
+             "observation.images": torch.rand(b, 2, 2, 3, *preset.image_size)}
+    with torch.no_grad():
+        cond = model._prepare_global_conditioning(batch)
+        film = model.unet.down_modules[0][0].cond_encoder[-1]
+        actions = model.generate_actions(batch)
+    assert cond.shape == (b, 268)
+    assert film.in_features == 524  # 268 + step embedding 256
+    assert actions.shape == (b, 8, 6)  # Ta=8 of the Tp=16 chunk
+    # every group norm has C/16 groups, as the walkthrough replaces BatchNorm
+    norms = [m for m in model.rgb_encoder.modules() if isinstance(m, torch.nn.GroupNorm)]
+    assert norms and all(m.num_groups == m.num_channels // 16 for m in norms)
+
+
+def test_cpu_preset_fits_the_shipping_limit() -> None:
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+
+    preset = load_preset("cpu")
+    policy = DiffusionPolicy(make_config(preset, *policy_features(preset.image_size)))
+    n = sum(p.numel() for p in policy.parameters())
+    assert n * 2 <= 30e6, f"{n} parameters do not fit 30 MB in fp16"
+
+
+def test_preset_must_set_every_field(tmp_path: Path) -> None:
+    text = (Path(__file__).parents[1] / "policy" / "presets" / "cpu.toml").read_text()
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace("horizon = 16\n", ""))
+    with pytest.raises(PresetError, match="missing \\['horizon'\\]"):
+        load_preset(bad)
+    bad.write_text(text + "\nfoo = 1\n".replace("foo", "[diffusion_extra]\nfoo"))
+    load_preset(bad)  # unknown sections are tolerated; unknown [diffusion] keys are not
+    bad.write_text(text.replace("horizon = 16\n", "horizon = 16\nhorizonn = 3\n"))
+    with pytest.raises(PresetError, match="unknown \\['horizonn'\\]"):
+        load_preset(bad)
+    with pytest.raises(PresetError, match="unknown preset 'nope'"):
+        load_preset("nope")
+
+
+def test_batches_match_lerobot_dataset(dataset: Path, tiny: Path) -> None:
+    """gather_batch gives what LeRobotDataset with delta_timestamps gives, padding included."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    preset = load_preset(tiny)
+    cfg = make_config(preset, *policy_features(preset.image_size))
+    delta = {"observation.state": [i / FPS for i in cfg.observation_delta_indices],
+             "action": [i / FPS for i in cfg.action_delta_indices]}
+    ds = LeRobotDataset(DEFAULT_REPO_ID, root=dataset, delta_timestamps=delta)
+    demos = load_demos(ds, preset, None)
+    ends = [int(r["dataset_to_index"]) for r in ds.meta.episodes]
+    idx = np.array([0, 5, ends[0] - 9, ends[0] - 1, ends[0], ends[1] - 1])
+    ours = gather_batch(demos, idx, cfg.n_obs_steps, cfg.horizon)
+    for row, i in enumerate(idx):
+        item = ds[int(i)]
+        assert torch.equal(ours["observation.state"][row], item["observation.state"])
+        assert torch.equal(ours["action"][row], item["action"])
+        assert torch.equal(ours["action_is_pad"][row], item["action_is_pad"])
+    assert ours["action_is_pad"][3].sum() == cfg.horizon - 2  # last frame: only t-1, t real
+    assert ours["observation.images.front"].shape == (len(idx), 2, 3, *preset.image_size)
+
+
+def _weights(path: Path) -> dict[str, torch.Tensor]:
+    from safetensors.torch import load_file
+
+    return load_file(path / "model.safetensors")
+
+
+def test_resume_continues_exactly(dataset: Path, tiny: Path, tmp_path: Path) -> None:
+    straight = train(dataset, tmp_path / "a", preset_name=str(tiny), steps=4, progress=False)
+    train(dataset, tmp_path / "b", preset_name=str(tiny), steps=2, progress=False)
+    with pytest.raises(TrainError, match="--resume"):
+        train(dataset, tmp_path / "b", preset_name=str(tiny), steps=4, progress=False)
+    resumed = train(dataset, tmp_path / "b", preset_name=str(tiny), steps=4, resume=True,
+                    progress=False)
+    assert straight.step == resumed.step == 4
+    a, b = _weights(straight.pretrained_dir), _weights(resumed.pretrained_dir)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert straight.final_loss == resumed.final_loss
+    log_a = [json.loads(x) for x in (tmp_path / "a" / "train_log.jsonl").read_text().splitlines()]
+    log_b = [json.loads(x) for x in (tmp_path / "b" / "train_log.jsonl").read_text().splitlines()]
+    assert [r["loss"] for r in log_a] == [r["loss"] for r in log_b]
+    info = json.loads((straight.pretrained_dir / "so101_sim_train.json").read_text())
+    assert info["dataset_image_size"] == list(SMALL) and info["policy_image_size"] == [24, 32]
+    assert info["weights"] == "EMA" and info["step"] == 4
+
+
+def test_checkpoint_loads_through_lerobot(dataset: Path, tiny: Path, tmp_path: Path) -> None:
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    r = train(dataset, tmp_path / "run", preset_name=str(tiny), steps=2, progress=False)
+    policy = DiffusionPolicy.from_pretrained(r.pretrained_dir).eval()
+    pre, post = make_pre_post_processors(policy.config, pretrained_path=str(r.pretrained_dir))
+    obs = {"observation.state": torch.zeros(1, 6),
+           "observation.images.front": torch.rand(1, 3, 24, 32),
+           "observation.images.side": torch.rand(1, 3, 24, 32)}
+    with torch.no_grad():
+        action = post(policy.select_action(pre(obs)))
+    assert action.shape == (1, 6) and torch.isfinite(action).all()
+    # the EMA weights differ from the raw ones after training
+    raw = torch.load(next((tmp_path / "run" / "checkpoints").glob("*/training_state.pt")),
+                     weights_only=False)["model"]
+    ema = _weights(r.pretrained_dir)
+    assert any(not torch.equal(raw[k], ema[k]) for k in ema if k in raw)
+
+
+@pytest.mark.slow
+def test_lerobot_eval_runs_the_checkpoint(dataset: Path, tiny: Path, tmp_path: Path) -> None:
+    r = train(dataset, tmp_path / "run", preset_name=str(tiny), steps=1, progress=False)
+    exe = Path(sys.executable).parent / "lerobot-eval"
+    out = tmp_path / "eval"
+    proc = subprocess.run(
+        [str(exe), "--env.type=so101_pick_place",
+         "--env.discover_packages_path=so101_sim.lerobot_plugin",
+         "--env.image_height=24", "--env.image_width=32", "--env.episode_length=40",
+         f"--policy.path={r.pretrained_dir}", "--eval.n_episodes=1", "--eval.batch_size=1",
+         "--policy.device=cpu", f"--output_dir={out}"],
+        capture_output=True, text=True, timeout=600,
+        env={**os.environ, "HF_HUB_OFFLINE": "1"})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    info = json.loads(next(out.rglob("eval_info.json")).read_text())
+    assert info["overall"]["n_episodes"] == 1
+
+
+def test_bad_dataset_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(TrainError, match="not a LeRobotDataset"):
+        train(tmp_path, tmp_path / "out", preset_name="cpu", steps=1, progress=False)
