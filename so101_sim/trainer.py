@@ -157,7 +157,7 @@ def _save_pretrained(policy, ema, pre, post, dest: Path, info: dict) -> None:
 
 def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | None = None,
           batch_size: int | None = None, resume: bool = False, keep_checkpoints: int = 3,
-          progress: bool = True) -> TrainResult:
+          progress: bool = True, log_every: int | None = None) -> TrainResult:
     """Train `preset_name` on the dataset at `dataset_dir`; see the module docstring."""
     from diffusers.optimization import get_scheduler
     from diffusers.training_utils import EMAModel
@@ -168,6 +168,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     ts = preset.train
     steps = int(steps if steps is not None else ts.steps)
     batch_size = int(batch_size if batch_size is not None else ts.batch_size)
+    log_every = int(log_every or ts.log_every)
     if steps < 1 or batch_size < 1:
         raise TrainError(f"--steps {steps} and --batch-size {batch_size} must both be >= 1")
     out = Path(out)
@@ -269,7 +270,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             step += 1
             loss_val = float(loss.detach())
             window.append((loss_val, time.perf_counter() - t_step))
-            if step % ts.log_every == 0 or step == steps:
+            if step % log_every == 0 or step == steps:
                 mean_loss = float(np.mean([w[0] for w in window]))
                 sps = batch_size * len(window) / sum(w[1] for w in window)
                 log.write(json.dumps({"step": step, "loss": round(mean_loss, 6),

@@ -167,6 +167,18 @@ def test_checkpoint_loads_through_lerobot(dataset: Path, tiny: Path, tmp_path: P
                      weights_only=False)["model"]
     ema = _weights(r.pretrained_dir)
     assert any(not torch.equal(raw[k], ema[k]) for k in ema if k in raw)
+    # the shipped form: fp16 on disk, fp32 after lerobot loads it, and a model card
+    from so101_sim.export import export_policy
+
+    shipped = export_policy(r.pretrained_dir, tmp_path / "shipped")
+    assert all(v.dtype == torch.float16 for v in _weights(shipped).values()
+               if v.is_floating_point())
+    loaded = DiffusionPolicy.from_pretrained(shipped)
+    assert all(p.dtype == torch.float32 for p in loaded.parameters())
+    ref = dict(policy.named_parameters())
+    assert max((p - ref[n]).abs().max().item() for n, p in loaded.named_parameters()) < 1e-2
+    card = (shipped / "README.md").read_text()
+    assert "| steps | 2 of 2 planned, batch 4 |" in card and "not measured yet" in card
 
 
 @pytest.mark.slow

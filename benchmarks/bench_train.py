@@ -1,0 +1,121 @@
+"""Training throughput: `so101-sim train` vs `lerobot-train`, same dataset and preset, one run.
+
+Both train the same DiffusionPolicy (the preset's fields; for lerobot-train the resize to the
+preset's image size is done inside the policy with `resize_shape`, and the crop ratio gives the
+same crop) on the same dataset for the same number of steps, one after the other. Throughput is
+taken from the steady state: the time between the first and last logged step, so start-up,
+the one-off frame-cache build and checkpoint writing are excluded (and printed separately).
+
+    .venv/bin/python benchmarks/bench_train.py --dataset ~/so101-runs/data/pp200 --steps 30
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import datetime
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from so101_sim.presets import load_preset  # noqa: E402
+
+# DiffusionConfig fields passed to lerobot-train as --policy.<field>=<value>.
+_SKIP = {"normalization_mapping", "resize_shape", "crop_shape", "crop_ratio", "device",
+         "push_to_hub"}
+
+
+def _cli_value(v) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, tuple | list):
+        return "[" + ",".join(str(x) for x in v) + "]"
+    return str(v).lower() if isinstance(v, bool) else str(v)
+
+
+def run_ours(dataset: Path, preset: str, steps: int, batch: int, work: Path) -> dict:
+    out = work / "ours"
+    code = ("import sys, json; from pathlib import Path; from so101_sim.trainer import train; "
+            f"r = train(Path({str(dataset)!r}), Path({str(out)!r}), preset_name={preset!r}, "
+            f"steps={steps}, batch_size={batch}, progress=False, log_every=1)")
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    total = time.perf_counter() - t0
+    rows = [json.loads(x) for x in (out / "train_log.jsonl").read_text().splitlines()]
+    warm = rows[2:]  # skip the first steps (allocator and thread-pool warm-up)
+    span = warm[-1]["wall_s"] - warm[0]["wall_s"]
+    per_step = span / (warm[-1]["step"] - warm[0]["step"])
+    return {"samples_per_s": batch / per_step, "s_per_step": per_step, "total_s": total}
+
+
+def run_lerobot(dataset: Path, preset_name: str, steps: int, batch: int, work: Path,
+                workers: int) -> dict:
+    preset = load_preset(preset_name)
+    d = preset.diffusion
+    args = [str(Path(sys.executable).parent / "lerobot-train"),
+            f"--dataset.repo_id=local/{dataset.name}", f"--dataset.root={dataset}",
+            "--policy.type=diffusion", "--policy.device=cpu", "--policy.push_to_hub=false",
+            f"--policy.resize_shape=[{preset.image_size[0]},{preset.image_size[1]}]",
+            f"--policy.crop_ratio={d['crop_shape'][0] / preset.image_size[0]}",
+            f"--output_dir={work / 'lerobot'}", f"--steps={steps}", f"--batch_size={batch}",
+            f"--num_workers={workers}", "--log_freq=1", "--save_checkpoint=false",
+            "--eval_freq=0", "--wandb.enable=false",
+            f"--dataset.use_imagenet_stats={str(preset.image_normalize == 'imagenet').lower()}"]
+    for k, v in d.items():
+        if k not in _SKIP:
+            args.append(f"--policy.{k}={_cli_value(v)}")
+    t0 = time.perf_counter()
+    proc = subprocess.run(args, capture_output=True, text=True, cwd=work,
+                          env={**os.environ, "HF_HUB_OFFLINE": "1"})
+    total = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise SystemExit(f"lerobot-train failed:\n{proc.stderr[-4000:]}")
+    stamps = []
+    for line in (proc.stdout + proc.stderr).splitlines():
+        m = re.search(r"(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}).*step:(\d+[KM]?)", line)
+        if m:
+            stamps.append((datetime.strptime(m.group(1), "%Y-%m-%d %H:%M:%S,%f"),
+                           int(m.group(2).rstrip("KM"))))
+    warm = stamps[2:]
+    if len(warm) < 2:
+        raise SystemExit("could not find lerobot-train step log lines; raise --steps")
+    span = (warm[-1][0] - warm[0][0]).total_seconds()
+    per_step = span / (warm[-1][1] - warm[0][1])
+    return {"samples_per_s": batch / per_step, "s_per_step": per_step, "total_s": total}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--dataset", type=Path, required=True)
+    ap.add_argument("--preset", default="cpu")
+    ap.add_argument("--steps", type=int, default=30)
+    ap.add_argument("--batch-size", type=int, default=None)
+    ap.add_argument("--lerobot-workers", type=int, default=2,
+                    help="lerobot-train DataLoader workers (video decoding); 2 = the cores")
+    a = ap.parse_args()
+    batch = a.batch_size or load_preset(a.preset).train.batch_size
+    with tempfile.TemporaryDirectory(prefix="bench_train_") as tmp:
+        work = Path(tmp)
+        ours = run_ours(a.dataset.expanduser(), a.preset, a.steps, batch, work)
+        theirs = run_lerobot(a.dataset.expanduser(), a.preset, a.steps, batch, work,
+                             a.lerobot_workers)
+    print(f"preset {a.preset}, batch {batch}, {a.steps} steps, dataset {a.dataset}, "
+          f"torch threads {os.cpu_count()}, load avg {os.getloadavg()[0]:.2f}")
+    print("| trainer | samples/s | s/step | wall incl. start-up |")
+    print("|---|---|---|---|")
+    for name, r in (("so101-sim train", ours), ("lerobot-train", theirs)):
+        print(f"| {name} | {r['samples_per_s']:.1f} | {r['s_per_step']:.2f} | "
+              f"{r['total_s']:.0f} s |")
+    print(f"ratio (samples/s): {ours['samples_per_s'] / theirs['samples_per_s']:.2f}x")
+
+
+if __name__ == "__main__":
+    main()

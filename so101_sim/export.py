@@ -1,0 +1,96 @@
+"""Ship a trained policy: fp16 weights (lerobot restores fp32 on load) plus a model card.
+
+The card's numbers come from files, not from the person writing it: the training facts from the
+checkpoint's `so101_sim_train.json`, the training curve from the run's `train_log.jsonl`, and the
+success rate from a harness run's `eval_info.json`.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+from so101_sim.trainer import TRAIN_INFO
+
+
+def _fp16_copy(src: Path, dst: Path) -> None:
+    from safetensors.torch import load_file, save_file
+
+    state = load_file(src)
+    save_file({k: v.half() if v.is_floating_point() else v for k, v in state.items()}, dst,
+              metadata={"format": "pt", "so101_sim": "stored fp16; loads into fp32"})
+
+
+def _curve(log: Path, points: int = 8) -> list[dict]:
+    rows = [json.loads(x) for x in log.read_text().splitlines() if x.strip()]
+    if not rows:
+        return []
+    pick = sorted({round(i * (len(rows) - 1) / (points - 1)) for i in range(points)})
+    return [rows[i] for i in pick]
+
+
+def model_card(train_info: dict, eval_info: dict | None, curve: list[dict],
+               hardware: str) -> str:
+    """Markdown model card from the training sidecar, the loss curve and a harness result."""
+    t = train_info
+    lines = [
+        "# pick_place_diffusion: Diffusion Policy for so101_sim/PickPlace-v0", "",
+        "lerobot `DiffusionPolicy` (EMA weights, stored fp16, loaded as fp32), trained with "
+        "`so101-sim train` on scripted-expert demonstrations.", "",
+        "| item | value |", "|---|---|",
+        f"| preset | `{t['preset']}` (policy/presets/{t['preset']}.toml) |",
+        f"| data | {t['dataset_episodes']} expert episodes, {t['dataset_frames']} frames, "
+        f"recorded at {t['dataset_image_size'][0]}x{t['dataset_image_size'][1]}, "
+        "training seeds |",
+        f"| policy input | 2 cameras resized to {t['policy_image_size'][0]}x"
+        f"{t['policy_image_size'][1]} by {t['image_pipeline']} |",
+        f"| steps | {t['step']} of {t['total_steps']} planned, batch {t['batch_size']} |",
+        f"| wall time | {t['train_wall_s'] / 3600:.2f} h |",
+        f"| hardware | {hardware} |",
+    ]
+    if eval_info:
+        lo, hi = eval_info["success_ci95"]
+        lines.append(f"| success | **{eval_info['pc_success']:.1f}%** (95% Wilson "
+                     f"[{lo:.1f}, {hi:.1f}]) on {eval_info['n_episodes']} evaluation seeds "
+                     f"from {eval_info.get('seed_start', 100000)} |")
+        modes = ", ".join(f"{k} {v}" for k, v in sorted(eval_info.get("failure_modes",
+                                                                       {}).items()))
+        lines.append(f"| outcomes | {modes or 'n/a'} |")
+    else:
+        lines.append("| success | not measured yet |")
+    if curve:
+        lines += ["", "Training loss (mean over each logging window):", "",
+                  "| step | loss | lr | samples/s |", "|---|---|---|---|"]
+        lines += [f"| {r['step']} | {r['loss']:.4f} | {r['lr']:.2e} | {r['samples_per_s']} |"
+                  for r in curve]
+    lines += ["", "Evaluate: `so101-sim eval --policy policy/pick_place_diffusion --episodes 100`",
+              ""]
+    return "\n".join(lines)
+
+
+def export_policy(checkpoint: Path, dest: Path, eval_dir: Path | None = None,
+                  hardware: str = "2-core CPU (no GPU)") -> Path:
+    """Copy `checkpoint` (a pretrained_model folder) to `dest` with fp16 weights and a card."""
+    checkpoint, dest = Path(checkpoint), Path(dest)
+    info_path = checkpoint / TRAIN_INFO
+    if not (checkpoint / "model.safetensors").is_file() or not info_path.is_file():
+        raise FileNotFoundError(f"{checkpoint} is not a so101-sim checkpoint (needs "
+                                f"model.safetensors and {TRAIN_INFO}); pass a "
+                                "checkpoints/step_*/pretrained_model folder")
+    tmp = dest.with_name(dest.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(checkpoint, tmp, ignore=shutil.ignore_patterns("model.safetensors"))
+    _fp16_copy(checkpoint / "model.safetensors", tmp / "model.safetensors")
+    info = json.loads(info_path.read_text())
+    eval_info = None
+    if eval_dir is not None:
+        eval_info = json.loads((Path(eval_dir) / "eval_info.json").read_text())
+        shutil.copy(Path(eval_dir) / "eval_info.json", tmp / "eval_info.json")
+    log = checkpoint.parents[2] / "train_log.jsonl"
+    curve = _curve(log) if log.is_file() else []
+    curve = [r for r in curve if r["step"] <= info["step"]]
+    (tmp / "README.md").write_text(model_card(info, eval_info, curve, hardware))
+    shutil.rmtree(dest, ignore_errors=True)
+    tmp.rename(dest)
+    return dest
