@@ -4,16 +4,39 @@ Everything is written through lerobot's own API (``LeRobotDataset.create`` / ``r
 ``add_frame``, ``save_episode``, ``finalize``) so the result loads in lerobot unchanged. Each
 frame also carries the episode's reset seed and initial cube pose, so any episode can be
 re-simulated exactly (``replay``). A small JSON sidecar in the dataset folder remembers every
-seed tried (kept or discarded), so ``resume`` never repeats one.
+seed tried (kept or discarded), the noise level and the codec, so ``resume`` never repeats a
+seed and never mixes settings.
+
+Parallel recording (``workers > 1``): each worker process simulates, renders and encodes whole
+episodes (its own env and lerobot ``StreamingVideoEncoder``) and hands back the episode's
+low-dimensional columns plus one finished mp4 per camera. The parent is the only writer: it
+saves episodes in seed order through the same ``save_episode`` path, with the worker's mp4s
+standing in for lerobot's streaming encoder (``_WorkerVideos``). The dataset at ``out`` is
+therefore a normal LeRobotDataset at every moment, exactly like a one-process recording, and
+resume/interrupt work the same way. Seeds go out in increasing order and only while the
+episodes kept so far plus those in flight are fewer than wanted, so no surplus episode is ever
+recorded and the kept seeds are the same as with one process.
+
+DART noise (``dart_noise > 0``): the env executes the expert's action plus Gaussian noise drawn
+from a per-episode stream seeded by the episode seed; ``action`` stays the expert's clean
+action (the label) and ``action_executed`` stores what was executed, which ``replay`` uses.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
+import multiprocessing as mp
+import os
+import queue
+import shutil
 import signal
 import time
-from collections.abc import Iterator
+import traceback
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -27,9 +50,21 @@ DEFAULT_REPO_ID = "local/so101_pick_place"
 SIDECAR = "so101_sim_recording.json"
 ROBOT_TYPE = "so101_follower"
 CAMERAS = ("front", "side")
+VIDEO_KEYS = tuple(f"observation.images.{cam}" for cam in CAMERAS)
+#: Video codecs `record` offers. h264 (libx264 "veryfast", crf 23) costs about half the CPU of
+#: lerobot's default AV1 (libsvtav1 preset 12, crf 30) per 480x640 frame at a similar file size
+#: and PSNR, and decodes ~3x faster; that is what lets two cores record >= 50 env-steps/s.
+VCODECS: dict[str, dict[str, Any]] = {
+    "h264": {"vcodec": "h264", "preset": "veryfast", "crf": 23},
+    "libsvtav1": {"vcodec": "libsvtav1"},
+}
+DEFAULT_VCODEC = "h264"
+WORKER_TMP = "tmp_workers"  # inside the dataset root: same filesystem, so mp4s move, not copy
+_DART_STREAM = 0xDA27  # second SeedSequence word: the noise never correlates with the jitter
 
 
-def dataset_features(image_size: tuple[int, int]) -> dict[str, dict[str, Any]]:
+def dataset_features(image_size: tuple[int, int],
+                     dart: bool = False) -> dict[str, dict[str, Any]]:
     """lerobot feature spec: state/action, two video cameras, and the re-simulation extras."""
     h, w = image_size
     names = list(FEATURE_NAMES)
@@ -37,11 +72,13 @@ def dataset_features(image_size: tuple[int, int]) -> dict[str, dict[str, Any]]:
         "observation.state": {"dtype": "float32", "shape": (6,), "names": names},
         "action": {"dtype": "float32", "shape": (6,), "names": names},
     }
-    for cam in CAMERAS:
-        feats[f"observation.images.{cam}"] = {
-            "dtype": "video", "shape": (h, w, 3), "names": ["height", "width", "channels"]}
+    for key in VIDEO_KEYS:
+        feats[key] = {"dtype": "video", "shape": (h, w, 3),
+                      "names": ["height", "width", "channels"]}
     feats["episode_seed"] = {"dtype": "int64", "shape": (1,), "names": None}
     feats["initial_cube_pose"] = {"dtype": "float32", "shape": (3,), "names": ["x", "y", "yaw_deg"]}
+    if dart:
+        feats["action_executed"] = {"dtype": "float32", "shape": (6,), "names": names}
     return feats
 
 
@@ -55,6 +92,31 @@ def check_seed_range(seed_start: int, n_seeds: int = 1) -> None:
             f"seeds {seed_start}..{seed_start + n_seeds - 1} reach the evaluation range "
             f"(>= {EVAL_SEED_START}); demonstrations must use training seeds "
             f"0..{EVAL_SEED_START - 1}")
+
+
+def check_dart_noise(dart_noise: float) -> float:
+    """The noise std as a float, or a ValueError that says what to pass instead."""
+    try:
+        x = float(dart_noise)
+    except (TypeError, ValueError):
+        x = math.nan
+    if not math.isfinite(x) or x < 0:
+        raise ValueError(f"dart_noise={dart_noise!r} is invalid; expected a finite number >= 0 "
+                         "(std of the executed-action noise: degrees for the arm joints, "
+                         "0..100 units for the gripper); pass e.g. --dart-noise 2, or 0 for none")
+    return x
+
+
+def _check_args(n_episodes: int, workers: int, seed_start: int, vcodec: str | None) -> None:
+    if n_episodes < 1:
+        raise ValueError(f"n_episodes={n_episodes}; expected >= 1")
+    if not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers={workers!r} is invalid; expected an integer >= 1, e.g. "
+                         f"--workers {os.cpu_count() or 2} (one per CPU core)")
+    if vcodec is not None and vcodec not in VCODECS:
+        raise ValueError(f"vcodec={vcodec!r} is not supported; expected one of "
+                         f"{sorted(VCODECS)} (--vcodec h264 is the fast default)")
+    check_seed_range(seed_start)
 
 
 # ----------------------------------------------------------------------------- sidecar / seeds
@@ -80,6 +142,11 @@ def _read_frames(root: Path, columns: list[str]) -> Any:
         return pd.DataFrame(columns=columns)
     return pd.concat([pq.read_table(f, columns=columns).to_pandas() for f in files],
                      ignore_index=True)
+
+
+def _features(root: Path) -> dict[str, Any]:
+    path = root / "meta" / "info.json"
+    return json.loads(path.read_text()).get("features", {}) if path.exists() else {}
 
 
 def stored_seeds(root: str | Path) -> list[int]:
@@ -114,6 +181,11 @@ class _Interrupts:
             with suppress(ValueError):  # not the main thread: leave signals alone
                 self._old[sig] = signal.signal(sig, self._handler)
 
+    def ignore(self) -> None:
+        """While closing: a second Ctrl-C must not corrupt the footer."""
+        for sig in self._old:
+            signal.signal(sig, signal.SIG_IGN)
+
     def restore(self) -> None:
         for sig, old in self._old.items():
             signal.signal(sig, old)
@@ -127,7 +199,200 @@ class _Interrupts:
         finally:
             self.critical = False
         if self.pending is not None:
-            raise KeyboardInterrupt(f"signal {self.pending}")
+            signum, self.pending = self.pending, None
+            raise KeyboardInterrupt(f"signal {signum}")
+
+
+# ----------------------------------------------------------------------------- one episode
+def _dart_rng(seed: int) -> np.random.Generator:
+    """Noise stream of one episode: fixed by its seed, independent of the expert's jitter."""
+    return np.random.default_rng([seed, _DART_STREAM])
+
+
+def run_episode(env: Any, expert: Any, seed: int, emit: Callable[[dict[str, Any]], None],
+                dart_noise: float = 0.0) -> tuple[bool, str | None, int]:
+    """Roll the expert for one episode, passing every frame (lerobot's frame dict) to `emit`.
+
+    With `dart_noise`, the env executes ``clip(action + N(0, dart_noise))`` while the frame's
+    ``action`` stays the clean expert action; ``action_executed`` holds what was executed.
+    The expert follows absolute joint targets, so each clean label also points back from the
+    perturbed state to the plan (the DART idea). Returns (success, failure_mode, steps).
+    """
+    obs, info = env.reset(seed=seed)
+    expert.reset(seed)
+    rng = _dart_rng(seed) if dart_noise > 0 else None
+    cube = np.asarray(info["cube_pose"], dtype=np.float32)
+    seed_arr = np.array([seed], dtype=np.int64)
+    description = env.task.description
+    steps, done, step_info = 0, False, {}
+    while not done:
+        action = np.asarray(expert.select_action(obs), dtype=np.float32)
+        executed = action
+        frame = {"observation.state": obs["agent_pos"].astype(np.float32), "action": action,
+                 "episode_seed": seed_arr, "initial_cube_pose": cube, "task": description}
+        if rng is not None:
+            noisy = action + rng.normal(0.0, dart_noise, size=action.shape)
+            executed = np.clip(noisy, env.action_low, env.action_high).astype(np.float32)
+            frame["action_executed"] = executed
+        for key, cam in zip(VIDEO_KEYS, CAMERAS, strict=True):
+            if "pixels" in obs:  # a state-only env gives none (success-rate studies)
+                frame[key] = obs["pixels"][cam]
+        emit(frame)
+        obs, _, terminated, truncated, step_info = env.step(executed)
+        steps += 1
+        done = terminated or truncated
+    return bool(step_info.get("is_success", False)), step_info.get("failure_mode"), steps
+
+
+# ----------------------------------------------------------------------------- bookkeeping
+@dataclass
+class _Tally:
+    """Counts, sidecar and progress bar, shared by the one-process and the worker recorder."""
+
+    root: Path
+    side: dict[str, Any]
+    kept: int
+    n_episodes: int
+    progress: bool
+    start_kept: int = 0
+    successes: int = 0
+    tried: int = 0
+    env_steps: int = 0
+    time_physics: float = 0.0
+    time_render: float = 0.0
+    time_write: float = 0.0  # wall time in the writer: feeding/finishing videos, save_episode
+    cpu_seconds: float = 0.0
+    t0: float = field(default_factory=time.perf_counter)
+    bar: Any = None
+
+    def __post_init__(self) -> None:
+        self.start_kept = self.kept
+        if self.progress:
+            from tqdm import tqdm
+            self.bar = tqdm(total=self.n_episodes, initial=self.kept, unit="ep", desc="record")
+
+    def episode(self, seed: int, success: bool, failure_mode: str | None, steps: int,
+                saved: bool) -> None:
+        """Account for one finished episode (call it inside ``_Interrupts.deferred``)."""
+        self.kept += saved
+        self.successes += success
+        self.tried += 1
+        self.env_steps += steps
+        if not success:
+            self.side["failures"][str(seed)] = failure_mode
+        self.side["tried"].append(seed)
+        _write_sidecar(self.root, self.side)
+
+    def show(self) -> None:
+        if self.bar is not None:
+            self.bar.update(self.kept - self.bar.n)
+            dt = time.perf_counter() - self.t0
+            self.bar.set_postfix(success=f"{self.successes}/{self.tried}",
+                                 steps_s=f"{self.env_steps / max(dt, 1e-9):.1f}")
+
+    def summary(self, workers: int) -> dict[str, Any]:
+        dt = time.perf_counter() - self.t0
+        return {"episodes": self.kept, "new_episodes": self.kept - self.start_kept,
+                "successes": self.successes, "tried": self.tried,
+                "failures": self.side["failures"], "env_steps": self.env_steps, "seconds": dt,
+                "steps_per_s": self.env_steps / max(dt, 1e-9), "workers": workers,
+                "dart_noise": self.side["dart_noise"], "vcodec": self.side["vcodec"],
+                "time_physics": self.time_physics, "time_render": self.time_render,
+                "time_write": self.time_write, "cpu_seconds": self.cpu_seconds}
+
+
+# ----------------------------------------------------------------------------- opening
+def _codec_of(features: dict[str, Any]) -> str | None:
+    """Codec a dataset's videos were written with (None before the first episode)."""
+    info = features.get(VIDEO_KEYS[0], {}).get("info") or {}
+    codec = info.get("video.codec")
+    return {"av1": "libsvtav1"}.get(codec, codec)
+
+
+def _resume_settings(root: Path, image_size: tuple[int, int], dart_noise: float,
+                     vcodec: str | None) -> tuple[dict[str, Any], str]:
+    """Sidecar of the dataset being resumed, and its codec; refuses a mismatch of settings."""
+    side = _read_sidecar(root)
+    if not (root / "meta" / "info.json").exists():
+        raise ValueError(f"{root} is not a LeRobot dataset (no meta/info.json); cannot --resume")
+    if side.get("image_size") and tuple(side["image_size"]) != image_size:
+        raise ValueError(f"{root} was recorded at {side['image_size'][0]}x"
+                         f"{side['image_size'][1]}; resume with --image-size to match")
+    features = _features(root)
+    old_noise = float(side.get("dart_noise", 0.0))
+    if old_noise != dart_noise:
+        raise ValueError(f"{root} was recorded with --dart-noise {old_noise:g}, not "
+                         f"{dart_noise:g}; resume with --dart-noise {old_noise:g} (a dataset "
+                         "holds one noise level)")
+    codec = side.get("vcodec") or _codec_of(features) or vcodec or DEFAULT_VCODEC
+    if vcodec is not None and vcodec != codec:
+        raise ValueError(f"{root} holds {codec} videos; resume with --vcodec {codec} or "
+                         "without --vcodec (videos of one dataset share a codec)")
+    return side, codec
+
+
+def _encoder(vcodec: str, features: dict[str, Any] | None = None) -> Any:
+    """lerobot encoder config: the dataset's own settings when it has videos, else ours."""
+    from lerobot.configs.video import RGBEncoderConfig
+
+    info = (features or {}).get(VIDEO_KEYS[0], {}).get("info") or {}
+    if info.get("video.codec"):
+        return RGBEncoderConfig.from_video_info(info)
+    return RGBEncoderConfig(**VCODECS[vcodec])
+
+
+@dataclass
+class _Opened:
+    ds: Any
+    side: dict[str, Any]
+    next_seed: int
+    encoder_kwargs: dict[str, Any]
+
+
+def _open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
+                  image_size: tuple[int, int], seed_start: int, dart_noise: float,
+                  vcodec: str | None, queue_size: int, streaming_encoding: bool) -> _Opened:
+    """Create the dataset, or reopen it for appending; write the sidecar."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    exists = root.exists() and any(root.iterdir())
+    if exists and not resume:
+        raise ValueError(f"{root} already exists and is not empty; pass --resume to continue "
+                         "recording into it, or choose another --out")
+    # Streaming encoding with a queue that holds a whole episode: lerobot's encoder drops
+    # frames when its queue is full, which would desynchronise video and data under load.
+    writer_kwargs = {"streaming_encoding": streaming_encoding, "encoder_threads": 1,
+                     "encoder_queue_maxsize": queue_size}
+    if resume and exists:
+        side, codec = _resume_settings(root, image_size, dart_noise, vcodec)
+        tried = [int(s) for s in side.get("tried", [])] + stored_seeds(root)
+        repo_id = side.get("repo_id", repo_id)
+        task_arg = side.get("task", task_arg)
+        encoder = _encoder(codec, _features(root))
+        ds = LeRobotDataset.resume(repo_id, root=root, rgb_encoder=encoder, **writer_kwargs)
+        failures = dict(side.get("failures", {}))
+        next_seed = max([seed_start - 1, *tried]) + 1
+    else:
+        if root.exists():
+            root.rmdir()  # empty: lerobot insists on creating the folder itself
+        codec = vcodec or DEFAULT_VCODEC
+        encoder = _encoder(codec)
+        ds = LeRobotDataset.create(repo_id=repo_id, fps=30, root=root, robot_type=ROBOT_TYPE,
+                                   features=dataset_features(image_size, dart_noise > 0),
+                                   use_videos=True, rgb_encoder=encoder, **writer_kwargs)
+        tried, failures, next_seed = [], {}, seed_start
+    side = {"repo_id": repo_id, "task": task_arg, "image_size": list(image_size),
+            "dart_noise": dart_noise, "vcodec": codec, "tried": sorted(set(tried)),
+            "failures": failures}
+    _write_sidecar(root, side)
+    return _Opened(ds, side, next_seed, dataclasses.asdict(encoder))
+
+
+def _task_arg(task: str | Path, root: Path, resume: bool) -> str:
+    """The task as stored in the sidecar: a name, or an absolute .toml path."""
+    if resume and (root / SIDECAR).exists():
+        return str(_read_sidecar(root).get("task", task))
+    return str(Path(task).resolve()) if Path(str(task)).suffix == ".toml" else str(task)
 
 
 # ----------------------------------------------------------------------------- record
@@ -135,153 +400,415 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path = "pick_place"
            seed_start: int = 0, image_size: tuple[int, int] = (480, 640),
            keep_failures: bool = False, resume: bool = False, workers: int = 1,
            repo_id: str = DEFAULT_REPO_ID, progress: bool = True,
-           streaming_encoding: bool = True) -> dict[str, Any]:
+           streaming_encoding: bool = True, dart_noise: float = 0.0,
+           vcodec: str | None = None) -> dict[str, Any]:
     """Record `n_episodes` expert episodes (only successes unless `keep_failures`) to `out_dir`.
 
     Seeds run upward from `seed_start` (or, with `resume`, from after the largest seed already
-    tried). Each episode is saved as soon as it ends and the dataset is finalized on any exit,
-    including Ctrl-C / SIGTERM, so an interrupted run loads with every completed episode.
-    Returns a summary dict (episodes, successes, tried, env_steps, steps_per_s, seconds).
+    tried); episodes are stored in seed order whatever `workers` is. Each episode is saved as
+    soon as it (and every lower seed) ends, and the dataset is finalized on any exit, including
+    Ctrl-C / SIGTERM, so an interrupted run loads with every completed episode. `vcodec` is
+    ``"h264"`` (default for new datasets) or ``"libsvtav1"``; a resumed dataset keeps its own.
+    `workers` > 1 records in that many processes (see the module docstring); `dart_noise` is
+    the std of the noise added to executed actions (``run_episode``), 0 for none. Returns a
+    summary dict (episodes, successes, tried, env_steps, steps_per_s, seconds, and the
+    time_physics / time_render / cpu_seconds spent by all recording processes).
     """
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from so101_sim.task import load_task
+
+    _check_args(n_episodes, workers, seed_start, vcodec)
+    dart_noise = check_dart_noise(dart_noise)
+    _quiet_libav()
+    root = Path(out_dir)
+    image_size = (int(image_size[0]), int(image_size[1]))
+    task_arg = _task_arg(task, root, resume)
+    spec = load_task(task_arg)
+    if spec.fps != 30:
+        raise ValueError(f"task fps is {spec.fps}; the dataset is recorded at 30 fps")
+    opened = _open_dataset(root, resume, repo_id, task_arg, image_size,
+                           seed_start, dart_noise, vcodec, spec.max_steps + 2,
+                           streaming_encoding or workers > 1)
+    tally = _Tally(root, opened.side, opened.ds.meta.total_episodes, n_episodes, progress)
+    if workers == 1:
+        _record_here(opened, tally, keep_failures, image_size)
+    else:
+        _record_with_workers(opened, tally, keep_failures, image_size, workers, spec)
+    return tally.summary(workers)
+
+
+def _record_here(opened: _Opened, tally: _Tally, keep_failures: bool,
+                 image_size: tuple[int, int]) -> None:
+    """One process: simulate, render and feed lerobot's own streaming encoder."""
+    from so101_sim.env import PickPlaceEnv
+    from so101_sim.expert import ScriptedExpert
+
+    ds, side = opened.ds, opened.side
+    env = PickPlaceEnv(task=side["task"], obs_type="pixels_agent_pos_env_state",
+                       image_size=image_size)
+    expert = ScriptedExpert(env.task)
+    next_seed, cpu0 = opened.next_seed, time.process_time()
+    interrupts = _Interrupts()
+    interrupts.install()
+
+    def add_frame(frame: dict[str, Any]) -> None:
+        t = time.perf_counter()
+        ds.add_frame(frame)
+        tally.time_write += time.perf_counter() - t
+
+    try:
+        while tally.kept < tally.n_episodes:
+            seed = next_seed
+            check_seed_range(seed)
+            next_seed += 1
+            success, mode, steps = run_episode(env, expert, seed, add_frame,
+                                               side["dart_noise"])
+            with interrupts.deferred():
+                t = time.perf_counter()
+                keep = success or keep_failures
+                if keep:
+                    ds.save_episode()
+                else:
+                    ds.clear_episode_buffer()
+                tally.time_write += time.perf_counter() - t
+                tally.episode(seed, success, mode, steps, keep)
+            tally.show()
+    finally:
+        interrupts.ignore()
+        try:
+            tally.time_physics, tally.time_render = env.time_physics, env.time_render
+            tally.cpu_seconds = time.process_time() - cpu0
+            _close(ds, tally)
+            env.close()
+        finally:
+            interrupts.restore()
+
+
+def _close(ds: Any, tally: _Tally) -> None:
+    if ds.has_pending_frames():
+        ds.clear_episode_buffer()
+    ds.finalize()
+    if tally.bar is not None:
+        tally.bar.close()
+
+
+# ----------------------------------------------------------------------------- workers
+@dataclass(frozen=True)
+class _WorkerSpec:
+    """Everything a worker process needs (picklable: it crosses to the worker process)."""
+
+    task: str
+    image_size: tuple[int, int]
+    dart_noise: float
+    keep_failures: bool
+    encoder_kwargs: dict[str, Any]
+    queue_size: int
+    temp_dir: str
+
+
+class _WorkerVideos:
+    """Stands in for lerobot's StreamingVideoEncoder inside the parent's DatasetWriter.
+
+    The worker already encoded the episode; ``finish_episode`` hands the writer those mp4s and
+    their stats, so ``save_episode`` files them exactly as it files its own streamed videos.
+    """
+
+    def __init__(self) -> None:
+        self.ready: dict[str, tuple[Path, dict | None]] | None = None
+
+    def start_episode(self, *args: Any, **kwargs: Any) -> None:
+        pass
+
+    def feed_frame(self, video_key: str, image: Any) -> None:
+        pass
+
+    def finish_episode(self) -> dict[str, tuple[Path, dict | None]]:
+        if self.ready is None:
+            raise RuntimeError("no worker videos queued for this episode")
+        ready, self.ready = self.ready, None
+        return ready
+
+    def cancel_episode(self) -> None:
+        self.ready = None
+
+    def close(self) -> None:
+        self.ready = None
+
+
+def _use_worker_videos(ds: Any) -> _WorkerVideos:
+    """Swap the writer's streaming encoder for `_WorkerVideos` (lerobot 0.6 DatasetWriter)."""
+    writer = getattr(ds, "writer", None)
+    if writer is None or not hasattr(writer, "_streaming_encoder"):
+        import lerobot
+
+        raise RuntimeError(f"--workers > 1 relies on lerobot 0.6's DatasetWriter streaming "
+                           f"encoder; lerobot {lerobot.__version__} has none: use --workers 1")
+    old = writer._streaming_encoder
+    if old is not None:
+        old.close()
+    videos = _WorkerVideos()
+    writer._streaming_encoder = videos
+    return videos
+
+
+class _EpisodeColumns:
+    """Worker side of `emit`: images go to the video encoders, the rest is kept per column."""
+
+    def __init__(self, encoder: Any, temp_dir: Path) -> None:
+        self.encoder = encoder
+        self.columns: dict[str, list[np.ndarray]] = {}
+        self.time_write = 0.0
+        encoder.start_episode(video_keys=list(VIDEO_KEYS), temp_dir=temp_dir)
+
+    def __call__(self, frame: dict[str, Any]) -> None:
+        t = time.perf_counter()
+        for key, value in frame.items():
+            if key in VIDEO_KEYS:
+                self.encoder.feed_frame(key, value)
+            elif key != "task":
+                self.columns.setdefault(key, []).append(value)
+        self.time_write += time.perf_counter() - t
+
+
+def _worker_episode(env: Any, expert: Any, encoder: Any, spec: _WorkerSpec,
+                    seed: int) -> dict[str, Any]:
+    """Record one episode in a worker; the result is small (columns and two mp4 paths)."""
+    phys0, rend0, cpu0 = env.time_physics, env.time_render, time.process_time()
+    cols = _EpisodeColumns(encoder, Path(spec.temp_dir))
+    success, mode, steps = run_episode(env, expert, seed, cols, spec.dart_noise)
+    t = time.perf_counter()
+    videos = encoder.finish_episode()  # waits for the encoder threads to drain the queue
+    time_write = cols.time_write + time.perf_counter() - t
+    keep = success or spec.keep_failures
+    if not keep:
+        for path, _ in videos.values():
+            shutil.rmtree(path.parent, ignore_errors=True)
+    return {"seed": seed, "success": success, "failure_mode": mode, "steps": steps,
+            "keep": keep,
+            "columns": {k: np.stack(v) for k, v in cols.columns.items()} if keep else {},
+            "videos": {k: (str(p), s) for k, (p, s) in videos.items()} if keep else {},
+            "time_physics": env.time_physics - phys0, "time_render": env.time_render - rend0,
+            "time_write": time_write, "cpu_seconds": time.process_time() - cpu0}
+
+
+def _next_seed(tasks: Any) -> int | None:
+    """Block for the next seed; None when told to stop or when the parent has died."""
+    parent = mp.parent_process()
+    while True:
+        try:
+            return tasks.get(timeout=1.0)
+        except queue.Empty:
+            if parent is not None and not parent.is_alive():
+                return None
+
+
+def _quiet_libav() -> None:
+    """Hide libav's info chatter (x264's per-file statistics, remux notes) on the console."""
+    import av
+
+    av.logging.set_libav_level(av.logging.WARNING)
+
+
+def _worker_main(spec: _WorkerSpec, tasks: Any, results: Any) -> None:
+    """Worker process: take seeds, record episodes, send results; the parent handles signals."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group
+    _quiet_libav()
+    from lerobot.configs.video import RGBEncoderConfig
+    from lerobot.datasets.video_utils import StreamingVideoEncoder
 
     from so101_sim.env import PickPlaceEnv
     from so101_sim.expert import ScriptedExpert
 
-    if workers != 1:
-        raise ValueError(f"workers={workers}: only --workers 1 is supported for now")
-    if n_episodes < 1:
-        raise ValueError(f"n_episodes={n_episodes}; expected >= 1")
-    check_seed_range(seed_start)
-    root = Path(out_dir)
-    image_size = (int(image_size[0]), int(image_size[1]))
-    task_arg = str(Path(task).resolve()) if Path(str(task)).suffix == ".toml" else str(task)
-    exists = root.exists() and any(root.iterdir())
+    seed = None
+    try:
+        env = PickPlaceEnv(task=spec.task, obs_type="pixels_agent_pos_env_state",
+                           image_size=spec.image_size)
+        expert = ScriptedExpert(env.task)
+        encoder = StreamingVideoEncoder(fps=env.task.fps, queue_maxsize=spec.queue_size,
+                                        rgb_encoder=RGBEncoderConfig(**spec.encoder_kwargs),
+                                        encoder_threads=1)
+        while (seed := _next_seed(tasks)) is not None:
+            results.put(("ok", _worker_episode(env, expert, encoder, spec, seed)))
+    except Exception:
+        results.put(("error", seed, traceback.format_exc()))
+    parent = mp.parent_process()
+    if parent is not None and not parent.is_alive():
+        results.cancel_join_thread()  # nobody reads our last result: do not hang on exit
 
-    if exists and not resume:
-        raise ValueError(f"{root} already exists and is not empty; pass --resume to continue "
-                         "recording into it, or choose another --out")
-    if resume and exists:
-        side = _read_sidecar(root)
-        if not (root / "meta" / "info.json").exists():
-            raise ValueError(f"{root} is not a LeRobot dataset (no meta/info.json); "
-                             "cannot --resume")
-        if side.get("image_size") and tuple(side["image_size"]) != image_size:
-            raise ValueError(f"{root} was recorded at {side['image_size'][0]}x"
-                             f"{side['image_size'][1]}; resume with --image-size to match")
-        tried = [int(s) for s in side.get("tried", [])] + stored_seeds(root)
-        repo_id = side.get("repo_id", repo_id)
-        task_arg = side.get("task", task_arg)
-        ds = LeRobotDataset.resume(repo_id, root=root, streaming_encoding=streaming_encoding)
-        failures = dict(side.get("failures", {}))
-        next_seed = max([seed_start - 1, *tried]) + 1
+
+@dataclass
+class _Dispatcher:
+    """Hands out seeds in increasing order and writes results back in that order.
+
+    A seed goes out only while ``kept + in flight < wanted``: even if every episode in flight
+    succeeds, nothing surplus is recorded, so the kept seeds equal a one-process run's.
+    """
+
+    next_seed: int
+    window: int  # at most this many seeds running or queued (each worker busy + one queued)
+    in_flight: list[int] = field(default_factory=list)  # dispatched, in order, not yet written
+    done: dict[int, dict[str, Any]] = field(default_factory=dict)  # arrived, not yet written
+
+    def to_send(self, kept: int, wanted: int) -> list[int]:
+        will_keep = kept + sum(r["keep"] for r in self.done.values())
+        pending = len(self.in_flight) - len(self.done)
+        seeds = []
+        while pending < self.window and will_keep + pending < wanted:
+            check_seed_range(self.next_seed)
+            seeds.append(self.next_seed)
+            self.in_flight.append(self.next_seed)
+            self.next_seed += 1
+            pending += 1
+        return seeds
+
+    def arrived(self, result: dict[str, Any]) -> None:
+        self.done[result["seed"]] = result
+
+    def ready(self) -> Iterator[dict[str, Any]]:
+        """Arrived results whose lower seeds are all written, lowest first."""
+        while self.in_flight and self.in_flight[0] in self.done:
+            yield self.done.pop(self.in_flight.pop(0))
+
+    def leftovers(self) -> list[dict[str, Any]]:
+        """On an early stop: the completed episodes still waiting for a lower seed."""
+        out = [self.done.pop(s) for s in sorted(self.done)]
+        self.in_flight.clear()
+        return out
+
+
+def _save_result(ds: Any, videos: _WorkerVideos, result: dict[str, Any], description: str,
+                 blank: np.ndarray) -> None:
+    """Write one worker episode through lerobot's add_frame/save_episode (videos pre-encoded)."""
+    cols = result["columns"]
+    for i in range(result["steps"]):
+        frame = {k: v[i] for k, v in cols.items()}
+        frame["task"] = description
+        for key in VIDEO_KEYS:
+            frame[key] = blank  # validated for shape only; the pixels are in the worker's mp4
+        ds.add_frame(frame)
+    videos.ready = {k: (Path(p), s) for k, (p, s) in result["videos"].items()}
+    ds.save_episode()
+
+
+def _receive(results: Any, procs: list[Any]) -> dict[str, Any]:
+    """Next worker result; raises if a worker failed or died."""
+    while True:
+        try:
+            msg = results.get(timeout=1.0)
+        except queue.Empty:
+            dead = [p for p in procs if not p.is_alive()]
+            if dead:
+                raise RuntimeError(f"recording worker pid {dead[0].pid} exited with code "
+                                   f"{dead[0].exitcode} before finishing its episode") from None
+            continue
+        if msg[0] == "error":
+            raise RuntimeError(f"recording worker failed on seed {msg[1]}:\n{msg[2]}")
+        return msg[1]
+
+
+def _stop_workers(procs: list[Any], tasks: Any, results: Any, graceful: bool) -> None:
+    """Let idle workers exit; kill busy ones (an interrupted episode is dropped anyway)."""
+    if graceful:
+        for _ in procs:
+            tasks.put(None)
+        for p in procs:
+            p.join(timeout=10)
     else:
-        if root.exists():
-            root.rmdir()  # empty: lerobot insists on creating the folder itself
-        ds = LeRobotDataset.create(repo_id=repo_id, fps=30, features=dataset_features(image_size),
-                                   root=root, robot_type=ROBOT_TYPE, use_videos=True,
-                                   streaming_encoding=streaming_encoding)
-        tried, failures, next_seed = [], {}, seed_start
+        for q in (tasks, results):
+            q.cancel_join_thread()  # never block our exit on a pipe nobody reads
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+            p.join(timeout=10)
 
-    side = {"repo_id": repo_id, "task": task_arg, "image_size": list(image_size),
-            "tried": sorted(set(tried)), "failures": failures}
-    _write_sidecar(root, side)
 
-    env = PickPlaceEnv(task=task_arg, obs_type="pixels_agent_pos_env_state",
-                       image_size=image_size)
-    expert = ScriptedExpert(env.task)
-    if env.task.fps != 30:
-        raise ValueError(f"task fps is {env.task.fps}; the dataset is recorded at 30 fps")
-    description = env.task.description
-    kept = ds.meta.total_episodes
-    start_kept, successes, env_steps, t0 = kept, 0, 0, time.perf_counter()
+def _worker_context() -> Any:
+    """Forkserver: workers start clean (no inherited threads or GL context, unlike fork) but
+    share one preloaded import of lerobot/torch (~5 CPU-s each with spawn)."""
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(["so101_sim.recording", "lerobot.datasets.video_utils",
+                                "so101_sim.env", "so101_sim.expert"])
+    return ctx
 
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=n_episodes, initial=kept, unit="ep", desc="record")
 
+def _record_with_workers(opened: _Opened, tally: _Tally, keep_failures: bool,
+                         image_size: tuple[int, int], workers: int, task: Any) -> None:
+    """W processes simulate/render/encode; this one writes their episodes in seed order."""
+    ds, side, root = opened.ds, opened.side, tally.root
+    videos = _use_worker_videos(ds)
+    temp_dir = root / WORKER_TMP
+    shutil.rmtree(temp_dir, ignore_errors=True)  # leftovers of a killed run
+    temp_dir.mkdir()
+    spec = _WorkerSpec(side["task"], image_size, side["dart_noise"], keep_failures,
+                       opened.encoder_kwargs, task.max_steps + 2, str(temp_dir))
+    description = task.description
+    blank = np.zeros((*image_size, 3), dtype=np.uint8)
+    ctx = _worker_context()
+    tasks, results = ctx.Queue(), ctx.Queue()
+    procs = [ctx.Process(target=_worker_main, args=(spec, tasks, results), daemon=True)
+             for _ in range(workers)]
+    dispatch = _Dispatcher(opened.next_seed, window=2 * workers)
+    cpu0, finished = time.process_time(), False
     interrupts = _Interrupts()
     interrupts.install()
+
+    def write(result: dict[str, Any]) -> None:
+        with interrupts.deferred():
+            t = time.perf_counter()
+            if result["keep"]:
+                _save_result(ds, videos, result, description, blank)
+            for key in ("time_physics", "time_render", "time_write", "cpu_seconds"):
+                setattr(tally, key, getattr(tally, key) + result[key])
+            tally.time_write += time.perf_counter() - t
+            tally.episode(result["seed"], result["success"], result["failure_mode"],
+                          result["steps"], result["keep"])
+        tally.show()
+
     try:
-        while kept < n_episodes:
-            seed = next_seed
-            check_seed_range(seed)
-            next_seed += 1
-            obs, info = env.reset(seed=seed)
-            expert.reset(seed)
-            cube = np.asarray(info["cube_pose"], dtype=np.float32)
-            seed_arr = np.array([seed], dtype=np.int64)
-            done, step_info = False, {}
-            while not done:
-                action = expert.select_action(obs)
-                frame = {"observation.state": obs["agent_pos"].astype(np.float32),
-                         "action": np.asarray(action, dtype=np.float32),
-                         "episode_seed": seed_arr, "initial_cube_pose": cube,
-                         "task": description}
-                for cam in CAMERAS:
-                    frame[f"observation.images.{cam}"] = obs["pixels"][cam]
-                ds.add_frame(frame)
-                obs, _, terminated, truncated, step_info = env.step(action)
-                env_steps += 1
-                done = terminated or truncated
-            success = bool(step_info.get("is_success", False))
-            with interrupts.deferred():
-                if success or keep_failures:
-                    ds.save_episode()
-                    kept += 1
-                else:
-                    ds.clear_episode_buffer()
-                successes += success
-                if not success:
-                    failures[str(seed)] = step_info.get("failure_mode")
-                side["tried"].append(seed)
-                _write_sidecar(root, side)
-            if bar is not None:
-                bar.update(kept - bar.n)
-                dt = time.perf_counter() - t0
-                bar.set_postfix(success=f"{successes}/{len(side['tried']) - len(tried)}",
-                                steps_s=f"{env_steps / max(dt, 1e-9):.1f}")
+        for p in procs:
+            p.start()
+        while True:
+            for seed in dispatch.to_send(tally.kept, tally.n_episodes):
+                tasks.put(seed)
+            if not dispatch.in_flight:
+                break
+            dispatch.arrived(_receive(results, procs))
+            for result in dispatch.ready():
+                write(result)
+        finished = True
     finally:
-        # Ignore further signals while closing: a second Ctrl-C must not corrupt the footer.
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            with suppress(ValueError):
-                signal.signal(sig, signal.SIG_IGN)
+        interrupts.ignore()
         try:
-            if ds.has_pending_frames():
-                ds.clear_episode_buffer()
-            ds.finalize()
-            env.close()
-            if bar is not None:
-                bar.close()
+            _stop_workers(procs, tasks, results, graceful=finished)
+            for result in dispatch.leftovers():
+                write(result)
+            tally.cpu_seconds += time.process_time() - cpu0
+            _close(ds, tally)
+            shutil.rmtree(temp_dir, ignore_errors=True)
         finally:
             interrupts.restore()
-
-    dt = time.perf_counter() - t0
-    return {"episodes": kept, "new_episodes": kept - start_kept, "successes": successes,
-            "tried": len(side["tried"]) - len(tried), "failures": failures,
-            "env_steps": env_steps, "seconds": dt, "steps_per_s": env_steps / max(dt, 1e-9)}
 
 
 # ----------------------------------------------------------------------------- replay
 def replay(dataset_dir: str | Path, episode: int) -> float:
     """Re-simulate episode `episode` from its stored seed and actions (state-only env).
 
-    Returns the largest absolute difference between the recorded ``observation.state`` and the
-    re-simulated ``agent_pos`` over the episode; ~0 because the simulation is deterministic.
+    Uses ``action_executed`` where the dataset has it (DART noise), else ``action``. Returns
+    the largest absolute difference between the recorded ``observation.state`` and the
+    re-simulated ``agent_pos`` over the episode; 0 because the simulation is deterministic.
     """
     from so101_sim.env import PickPlaceEnv
 
     root = Path(dataset_dir)
+    act_key = "action_executed" if "action_executed" in _features(root) else "action"
     df = _read_frames(root, ["episode_index", "frame_index", "episode_seed",
-                             "observation.state", "action"])
+                             "observation.state", act_key])
     ep = df[df["episode_index"] == episode].sort_values("frame_index")
     if len(ep) == 0:
         n = df["episode_index"].nunique()
         raise ValueError(f"episode {episode} not in {root} (it has {n} episodes, 0..{n - 1})")
     seed = int(np.asarray(ep["episode_seed"].iloc[0]).reshape(-1)[0])
     states = np.stack([np.asarray(s, dtype=np.float32) for s in ep["observation.state"]])
-    actions = np.stack([np.asarray(a, dtype=np.float32) for a in ep["action"]])
+    actions = np.stack([np.asarray(a, dtype=np.float32) for a in ep[act_key]])
     task = _read_sidecar(root).get("task", "pick_place")
 
     env = PickPlaceEnv(task=task, obs_type="state")

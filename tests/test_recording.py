@@ -1,4 +1,5 @@
-"""Recording expert demos as a LeRobotDataset: round trip, interruption/resume, seeds, replay."""
+"""Recording expert demos as a LeRobotDataset: round trip, interruption/resume, seeds, replay,
+parallel workers and DART noise."""
 
 from __future__ import annotations
 
@@ -14,11 +15,12 @@ import numpy as np
 import pytest
 import torch
 
-from so101_sim.recording import DEFAULT_REPO_ID, record, replay, stored_seeds
+from so101_sim.recording import DEFAULT_REPO_ID, SIDECAR, record, replay, stored_seeds
 from so101_sim.units import FEATURE_NAMES
 
 SMALL = (48, 64)
 FPS = 30
+DART = 1.0  # seed 2 fails with this noise (never grasped), 3 and 4 succeed
 
 
 @pytest.fixture(scope="module")
@@ -82,34 +84,160 @@ def _total_episodes(root: Path) -> int:
         return 0
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
-def test_interrupt_then_resume(tmp_path: Path, sig: signal.Signals) -> None:
+@pytest.mark.parametrize(("sig", "workers"), [(signal.SIGINT, 1), (signal.SIGTERM, 1),
+                                             (signal.SIGINT, 2)],
+                         ids=["SIGINT", "SIGTERM", "Ctrl-C-workers2"])
+def test_interrupt_then_resume(tmp_path: Path, sig: signal.Signals, workers: int) -> None:
     root = tmp_path / "ds"
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), "HF_HUB_OFFLINE": "1"}
-    common = ["--episodes", "4", "--out", str(root), "--image-size", "48x64"]
-    proc = subprocess.Popen(_cli("record", *common), env=env,
+    common = ["--episodes", "4", "--out", str(root), "--image-size", "48x64",
+              "--workers", str(workers)]
+    # Its own session, so the W=2 case can send SIGINT to the whole group as Ctrl-C does.
+    proc = subprocess.Popen(_cli("record", *common), env=env, start_new_session=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 120
     while _total_episodes(root) < 1 and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
     assert proc.poll() is None, proc.communicate()[1].decode()[-2000:]
-    proc.send_signal(sig)
+    if workers > 1:
+        os.killpg(proc.pid, sig)
+    else:
+        proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err.decode()[-2000:]
 
     done = _load(root).num_episodes
     assert 1 <= done < 4
-    seeds = stored_seeds(root)
-    assert len(seeds) == done
+    first = stored_seeds(root)
+    assert len(first) == done and first == sorted(first)
+    assert not (root / "tmp_workers").exists()
 
     out = subprocess.run(_cli("record", *common, "--resume"), env=env,
-                         capture_output=True, timeout=120)
+                         capture_output=True, timeout=180)
     assert out.returncode == 0, out.stderr.decode()[-2000:]
     ds = _load(root)
     assert ds.num_episodes == 4
     seeds = stored_seeds(root)
-    assert len(seeds) == len(set(seeds)) == 4 and seeds[:done] == list(range(done))
+    assert len(seeds) == len(set(seeds)) == 4 and seeds[:done] == first
+    assert seeds == sorted(seeds) and max(seeds) < 100_000
+    if workers == 1:
+        assert first == list(range(done))
     assert np.isfinite(ds[len(ds) - 1]["observation.state"].numpy()).all()
+
+
+# ----------------------------------------------------------------------------- workers
+def _episodes(root: Path, columns: list[str]) -> dict[int, dict[str, np.ndarray]]:
+    """Per episode seed: every column as an array, rows in frame order."""
+    import pandas as pd
+    import pyarrow.parquet as pq
+
+    files = sorted((root / "data").glob("**/*.parquet"))
+    df = pd.concat([pq.read_table(f).to_pandas() for f in files], ignore_index=True)
+    out = {}
+    for _, ep in df.sort_values(["episode_index", "frame_index"]).groupby("episode_index"):
+        seed = int(np.asarray(ep["episode_seed"].iloc[0]).reshape(-1)[0])
+        out[seed] = {c: np.stack([np.asarray(v) for v in ep[c]]) for c in columns}
+    return out
+
+
+@pytest.fixture(scope="module")
+def dataset_w2(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("rec_w2") / "ds"
+    summary = record(root, 2, image_size=SMALL, progress=False, workers=2)
+    assert summary["episodes"] == 2 and summary["workers"] == 2
+    return root
+
+
+def test_two_workers_match_one_process(dataset: Path, dataset_w2: Path) -> None:
+    cols = ["action", "observation.state", "initial_cube_pose"]
+    one, two = _episodes(dataset, cols), _episodes(dataset_w2, cols)
+    assert stored_seeds(dataset_w2) == stored_seeds(dataset) == [0, 1]
+    for seed in one:
+        for col in cols:
+            assert np.array_equal(one[seed][col], two[seed][col]), (seed, col)
+    ds = _load(dataset_w2)
+    assert ds.num_episodes == 2 and len(ds) == len(_load(dataset))
+    last = ds[len(ds) - 1]  # the last frame decodes: videos hold every frame
+    for cam in ("front", "side"):
+        assert last[f"observation.images.{cam}"].shape == (3, *SMALL)
+    assert not (dataset_w2 / "tmp_workers").exists()
+    assert replay(dataset_w2, 1) == 0.0
+
+
+def test_bad_workers_value_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="workers=0 is invalid; expected an integer >= 1"):
+        record(tmp_path / "ds", 1, image_size=SMALL, progress=False, workers=0)
+    assert not (tmp_path / "ds").exists()
+
+
+# ----------------------------------------------------------------------------- DART noise
+@pytest.fixture(scope="module")
+def dart_datasets(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """Seeds 2.. recorded with DART noise twice: in this process and by two workers."""
+    base = tmp_path_factory.mktemp("rec_dart")
+    for name, workers in (("w1", 1), ("w2", 2)):
+        summary = record(base / name, 2, image_size=SMALL, progress=False, workers=workers,
+                         dart_noise=DART, seed_start=2)
+        assert summary["episodes"] == 2 and summary["dart_noise"] == DART
+        assert summary["tried"] == 3 and summary["failures"] == {"2": "never_grasped"}
+    return base / "w1", base / "w2"
+
+
+def test_dart_labels_are_clean_and_noise_is_seeded(dart_datasets: tuple[Path, Path]) -> None:
+    from so101_sim.env import PickPlaceEnv
+    from so101_sim.expert import ScriptedExpert
+
+    cols = ["action", "action_executed", "observation.state"]
+    a, b = (_episodes(root, cols) for root in dart_datasets)
+    assert list(a) == list(b) == [3, 4]  # only successes, in seed order
+    for seed in a:  # same seed, same noise (and workers change nothing)
+        for col in cols:
+            assert np.array_equal(a[seed][col], b[seed][col]), (seed, col)
+    seed = 3
+    ep = a[seed]
+    noise = ep["action_executed"][:, :5] - ep["action"][:, :5]
+    assert np.all(np.any(noise != 0, axis=1))
+    assert 0.7 * DART < noise.std() < 1.3 * DART
+    # Labels are what the expert asks for in the states the noisy execution led to.
+    env = PickPlaceEnv(obs_type="state")
+    expert = ScriptedExpert(env.task)
+    obs, _ = env.reset(seed=seed)
+    expert.reset(seed)
+    for label, executed in zip(ep["action"], ep["action_executed"], strict=True):
+        assert np.array_equal(expert.select_action(obs), label)
+        obs, *_ = env.step(executed)
+    env.close()
+    for root in dart_datasets:
+        side = json.loads((root / SIDECAR).read_text())
+        assert side["dart_noise"] == DART and side["tried"] == [2, 3, 4]
+
+
+def test_dart_replay_is_exact(dart_datasets: tuple[Path, Path]) -> None:
+    for root in dart_datasets:
+        assert replay(root, 1) == 0.0
+
+
+@pytest.mark.parametrize("bad", [-1.0, float("nan"), float("inf")])
+def test_bad_dart_noise_is_refused(tmp_path: Path, bad: float) -> None:
+    with pytest.raises(ValueError, match=r"dart_noise=.* is invalid; expected a finite number "
+                                         r">= 0.*--dart-noise 2"):
+        record(tmp_path / "ds", 1, image_size=SMALL, progress=False, dart_noise=bad)
+    assert not (tmp_path / "ds").exists()
+
+
+def test_cli_names_bad_dart_noise(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from so101_sim.cli import main
+
+    code = main(["record", "--episodes", "1", "--out", str(tmp_path / "ds"),
+                 "--dart-noise", "-0.5"])
+    assert code == 2
+    assert "dart_noise=-0.5 is invalid" in capsys.readouterr().err
+
+
+def test_resume_keeps_the_noise_level(dart_datasets: tuple[Path, Path]) -> None:
+    with pytest.raises(ValueError,
+                       match="recorded with --dart-noise 1, not 0; resume with --dart-noise 1"):
+        record(dart_datasets[0], 2, image_size=SMALL, progress=False, resume=True)
 
 
 def test_diffusion_policy_loss_is_finite(dataset: Path) -> None:
