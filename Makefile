@@ -33,6 +33,9 @@ $(STAMP): pyproject.toml
 
 demo: $(STAMP)
 	$(VENV)/bin/so101-sim demo --out outputs/demo
+	rm -rf outputs/eval/expert-demo
+	$(VENV)/bin/so101-sim eval --policy expert --episodes 20 --n-envs 2 --videos 2 \
+		--out outputs/eval/expert-demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q

@@ -35,7 +35,8 @@ def _record(args: argparse.Namespace) -> int:
     try:
         s = record(Path(args.out), args.episodes, task=args.task, seed_start=args.seed_start,
                    image_size=args.image_size, keep_failures=args.keep_failures,
-                   resume=args.resume, workers=args.workers)
+                   resume=args.resume, workers=args.workers, dart_noise=args.dart_noise,
+                   vcodec=args.vcodec)
     except KeyboardInterrupt:
         print(f"so101-sim record: interrupted; {args.out} holds every completed episode "
               "(continue with --resume)", file=sys.stderr)
@@ -51,6 +52,62 @@ def _replay(args: argparse.Namespace) -> int:
 
     dev = replay(Path(args.dataset), args.episode)
     print(f"episode {args.episode}: max |observation.state - re-simulated agent_pos| = {dev:.3g}")
+    return 0
+
+
+def _train(args: argparse.Namespace) -> int:
+    from so101_sim.presets import PresetError
+    from so101_sim.trainer import TrainError, train
+
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    try:
+        r = train(Path(args.dataset), Path(args.out), preset_name=args.preset, steps=args.steps,
+                  batch_size=args.batch_size, resume=args.resume)
+    except (TrainError, PresetError) as e:
+        print(f"so101-sim train: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as e:
+        print(f"so101-sim train: {e}; continue with --resume", file=sys.stderr)
+        return 130
+    print(f"{r.out}: step {r.step}, last loss {r.final_loss:.4f}, {r.samples_per_s:.1f} "
+          f"samples/s, {r.wall_s / 60:.1f} min in all; EMA policy in {r.pretrained_dir}")
+    return 0
+
+
+def _eval(args: argparse.Namespace) -> int:
+    from so101_sim.harness import evaluate, load_policy
+
+    options = {k: v for k, v in (("n_action_steps", args.n_action_steps),
+                                 ("num_inference_steps", args.inference_steps),
+                                 ("noise_scheduler", args.noise_scheduler),
+                                 ("batch_size", args.policy_batch)) if v is not None}
+    try:
+        policy = load_policy(args.policy, task=args.task, **options)
+        evaluate(policy, task=args.task, episodes=args.episodes, n_envs=args.n_envs,
+                 seed_start=args.seed_start, out_dir=args.out, videos=args.videos,
+                 image_size=args.image_size, resume=args.resume,
+                 allow_train_seeds=args.allow_train_seeds)
+    except KeyboardInterrupt:
+        print("so101-sim eval: interrupted; every finished episode is in episodes.jsonl "
+              "(finish with the same arguments plus --resume)", file=sys.stderr)
+        return 130
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    from so101_sim.export import export_policy
+
+    try:
+        dest = export_policy(Path(args.checkpoint), Path(args.out),
+                             Path(args.eval) if args.eval else None, args.hardware)
+    except FileNotFoundError as e:
+        print(f"so101-sim export: {e}", file=sys.stderr)
+        return 2
+    size = sum(f.stat().st_size for f in dest.iterdir()) / 1e6
+    print(f"{dest}: {size:.1f} MB (model card {dest / 'README.md'})")
     return 0
 
 
@@ -80,7 +137,16 @@ def build_parser() -> argparse.ArgumentParser:
                      help="also keep episodes the expert failed")
     rec.add_argument("--resume", action="store_true",
                      help="continue an existing dataset up to --episodes without repeating a seed")
-    rec.add_argument("--workers", type=int, default=1, help="only 1 is supported for now")
+    rec.add_argument("--workers", type=int, default=1,
+                     help="processes that simulate, render and encode in parallel (one per "
+                          "CPU core is best); episodes are still stored in seed order")
+    rec.add_argument("--dart-noise", type=float, default=0.0, metavar="STD",
+                     help="DART noise: execute the expert's action plus Gaussian noise of this "
+                          "std (degrees; gripper 0..100 units) while `action` keeps the clean "
+                          "label; executed actions go to `action_executed` (default 0: off)")
+    rec.add_argument("--vcodec", choices=["h264", "libsvtav1"], default=None,
+                     help="video codec of a new dataset (default h264: about half the CPU of "
+                          "AV1 per frame; a resumed dataset keeps its own)")
     rec.set_defaults(func=_record)
 
     rep = sub.add_parser("replay", help="re-simulate a recorded episode from its seed and "
@@ -88,6 +154,63 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("dataset", help="dataset folder written by `so101-sim record`")
     rep.add_argument("--episode", type=int, default=0)
     rep.set_defaults(func=_replay)
+
+    tr = sub.add_parser("train", help="train a Diffusion Policy preset on a recorded dataset "
+                                      "(EMA weights, lerobot checkpoint format)")
+    tr.add_argument("--preset", default="cpu", help="preset name in policy/presets (cpu, seed) "
+                                                    "or a .toml path")
+    tr.add_argument("--dataset", required=True, help="LeRobotDataset folder (so101-sim record)")
+    tr.add_argument("--out", required=True, help="run folder (checkpoints, log, final policy)")
+    tr.add_argument("--steps", type=int, default=None, help="total steps (default: preset)")
+    tr.add_argument("--batch-size", type=int, default=None, help="default: preset")
+    tr.add_argument("--resume", action="store_true",
+                    help="continue from the last checkpoint in --out, exactly")
+    tr.add_argument("--threads", type=int, default=None,
+                    help="torch CPU threads (default: all cores); use 1 when other jobs share "
+                         "the cores: oversubscribed thread pools are several times slower")
+    tr.set_defaults(func=_train)
+
+    ex = sub.add_parser("export", help="copy a trained checkpoint to a shippable folder: fp16 "
+                                       "weights and a model card with harness numbers")
+    ex.add_argument("checkpoint", help="a checkpoints/step_*/pretrained_model folder")
+    ex.add_argument("--out", default="policy/pick_place_diffusion")
+    ex.add_argument("--eval", default=None, help="a `so101-sim eval --out` folder whose "
+                                                 "eval_info.json goes into the card")
+    ex.add_argument("--hardware", default="2-core CPU (no GPU)")
+    ex.set_defaults(func=_export)
+
+    ev = sub.add_parser("eval", help="evaluate a policy closed-loop on evaluation seeds: "
+                                     "success rate with interval, failure modes, videos, report")
+    ev.add_argument("--policy", required=True,
+                    help="'expert', a lerobot checkpoint directory (config.json, "
+                         "model.safetensors, saved processors) or 'package.module:factory'")
+    ev.add_argument("--task", default="pick_place", help="task name in envs/ or a .toml path")
+    ev.add_argument("--episodes", type=int, default=50)
+    ev.add_argument("--n-envs", type=int, default=8,
+                    help="env worker processes (default 8, which fills one policy forward); "
+                         "results per seed do not depend on it")
+    ev.add_argument("--seed-start", type=int, default=100_000,
+                    help="first seed (default 100000; training seeds are below it)")
+    ev.add_argument("--allow-train-seeds", action="store_true",
+                    help="allow --seed-start below 100000 (measuring on training seeds)")
+    ev.add_argument("--out", default=None,
+                    help="output folder (default outputs/eval/<policy>-<task>-<time>)")
+    ev.add_argument("--videos", type=int, default=2, help="mp4s of the first V episodes")
+    ev.add_argument("--image-size", type=parse_image_size, default=None,
+                    help="render size HEIGHTxWIDTH (default: the checkpoint's training data size "
+                         "from so101_sim_train.json, then resized like training; the policy's "
+                         "input size renders directly, faster)")
+    ev.add_argument("--resume", action="store_true",
+                    help="finish an interrupted evaluation in --out")
+    ev.add_argument("--n-action-steps", type=int, default=None,
+                    help="actions executed per chunk (default: the checkpoint's)")
+    ev.add_argument("--inference-steps", type=int, default=None,
+                    help="diffusion denoising steps (default: the checkpoint's)")
+    ev.add_argument("--noise-scheduler", choices=["DDIM", "DDPM"], default=None,
+                    help="diffusion sampler (default: the checkpoint's)")
+    ev.add_argument("--policy-batch", type=int, default=None,
+                    help="rows per policy forward, padded (default 8; 1 = one env per forward)")
+    ev.set_defaults(func=_eval)
     return parser
 
 

@@ -50,13 +50,14 @@ def model_card(train_info: dict, eval_info: dict | None, curve: list[dict],
         f"| hardware | {hardware} |",
     ]
     if eval_info:
-        lo, hi = eval_info["success_ci95"]
-        lines.append(f"| success | **{eval_info['pc_success']:.1f}%** (95% Wilson "
-                     f"[{lo:.1f}, {hi:.1f}]) on {eval_info['n_episodes']} evaluation seeds "
-                     f"from {eval_info.get('seed_start', 100000)} |")
-        modes = ", ".join(f"{k} {v}" for k, v in sorted(eval_info.get("failure_modes",
-                                                                       {}).items()))
+        agg = eval_info["aggregated"]
+        lo, hi = agg["success_ci95"]
+        lines.append(f"| success | **{agg['pc_success']:.1f}%** (95% Wilson "
+                     f"[{lo:.1f}, {hi:.1f}]) on {agg['n_episodes']} evaluation seeds from "
+                     f"{eval_info['config']['seed_start']} |")
+        modes = ", ".join(f"{k} {v}" for k, v in sorted(agg.get("failure_modes", {}).items()))
         lines.append(f"| outcomes | {modes or 'n/a'} |")
+        lines.append(f"| eval images | {eval_info['config'].get('images', 'n/a')} |")
     else:
         lines.append("| success | not measured yet |")
     if curve:

@@ -1,0 +1,162 @@
+"""Rollout-harness speed, and the harness against lerobot-eval on the same checkpoint and seeds.
+
+    .venv/bin/python benchmarks/bench_eval.py CHECKPOINT [--episodes 50] [--n-envs 8]
+    .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --compare-lerobot
+    .venv/bin/python benchmarks/bench_eval.py --quick          # tiny untrained checkpoint
+
+(a) `so101-sim eval` on N episodes with K env workers: wall time and the physics / render /
+policy split (target: 50 episodes in <= 3 min on 2 cores). It renders the harness's default
+way (the training data's size, then resize_frames) unless --image-size is given.
+(b) with --compare-lerobot, the same checkpoint and seeds through `lerobot-eval
+--env.type=so101_pick_place` and through the harness, both rendering at the policy's input
+size (lerobot-eval cannot resize) and both writing 10 videos (lerobot-eval always does):
+wall time of each whole command, the speed-up (target >= 2x) and whether the success rates'
+95% intervals overlap. Without a checkpoint a tiny untrained DiffusionPolicy is built
+(tests/tiny_policy.py): it fails every episode, so only the timings mean anything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+
+
+def short_task(out_dir: Path, max_steps: int) -> Path:
+    """pick_place with episodes cut to `max_steps` (for --quick)."""
+    from so101_sim.paths import envs_dir
+
+    text = re.sub(r"(?m)^max_steps\s*=\s*\d+", f"max_steps = {max_steps}",
+                  (envs_dir() / "pick_place.toml").read_text())
+    path = out_dir / f"pick_place_{max_steps}.toml"
+    path.write_text(text)
+    return path
+
+
+def policy_input_size(ckpt: Path) -> tuple[int, int]:
+    cfg = json.loads((ckpt / "config.json").read_text())
+    shapes = [f["shape"] for k, f in cfg["input_features"].items()
+              if k.startswith("observation.images.")]
+    return int(shapes[0][1]), int(shapes[0][2])
+
+
+def run_harness(ckpt: Path, out: Path, episodes: int, n_envs: int, videos: int,
+                image_size: tuple[int, int] | None, task: str) -> tuple[float, dict]:
+    cmd = [str(BIN / "so101-sim"), "eval", "--policy", str(ckpt), "--task", task,
+           "--episodes", str(episodes), "--n-envs", str(n_envs), "--videos", str(videos),
+           "--out", str(out)]
+    if image_size:
+        cmd += ["--image-size", f"{image_size[0]}x{image_size[1]}"]
+    wall = timed(cmd)
+    return wall, json.loads((out / "eval_info.json").read_text())["aggregated"]
+
+
+def run_lerobot_eval(ckpt: Path, out: Path, episodes: int, n_envs: int,
+                     image_size: tuple[int, int], task: str, episode_length: int) -> tuple:
+    cmd = [str(BIN / "lerobot-eval"), f"--policy.path={ckpt}", "--policy.device=cpu",
+           "--env.type=so101_pick_place", "--env.discover_packages_path=so101_sim.lerobot_plugin",
+           f"--env.task={task}", f"--env.episode_length={episode_length}",
+           f"--env.image_height={image_size[0]}", f"--env.image_width={image_size[1]}",
+           f"--eval.n_episodes={episodes}", f"--eval.batch_size={n_envs}",
+           "--seed=100000", f"--output_dir={out}"]
+    wall = timed(cmd)
+    info = json.loads((out / "eval_info.json").read_text())
+    agg = info.get("overall", info.get("aggregated"))
+    return wall, agg
+
+
+def timed(cmd: list[str]) -> float:
+    """Wall time of a whole command (imports and loading included); its output is shown
+    only if it fails."""
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode:
+        sys.exit(f"{Path(cmd[0]).name} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+    return time.perf_counter() - t0
+
+
+def rate(k: float, n: int) -> str:
+    from so101_sim.stats import wilson_interval
+
+    lo, hi = wilson_interval(round(k), n)
+    return f"{round(k)}/{n} = {100 * k / n:.1f}% [{100 * lo:.1f}, {100 * hi:.1f}]"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("checkpoint", nargs="?", help="lerobot checkpoint dir (default: tiny)")
+    parser.add_argument("--episodes", type=int, default=50)
+    parser.add_argument("--n-envs", type=int, default=8, help="8 fills a policy forward")
+    parser.add_argument("--image-size", default=None, help="HxW for (a); default: harness's")
+    parser.add_argument("--compare-lerobot", action="store_true", help="also run (b)")
+    parser.add_argument("--quick", action="store_true",
+                        help="4 episodes of 48 steps, 2 envs, (a) and (b): a sanity run")
+    parser.add_argument("--max-steps", type=int, default=None,
+                        help="cut episodes to this many steps (a shorter task file)")
+    parser.add_argument("--out", default=None, help="folder for the runs (default: a temp dir)")
+    args = parser.parse_args()
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    # Both commands get sleeping OpenMP waits (the harness sets this itself): with the default
+    # spinning, a torch forward slows down 10x+ whenever env workers hold the other core, which
+    # would make the comparison about OpenMP rather than the harness.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+    work = Path(args.out or tempfile.mkdtemp(prefix="bench_eval_"))
+    work.mkdir(parents=True, exist_ok=True)
+    task, episode_length = "pick_place", 300
+    if args.quick:
+        args.episodes, args.n_envs, args.compare_lerobot = 4, 2, True
+        args.max_steps = args.max_steps or 48
+    if args.max_steps:
+        episode_length = args.max_steps
+        task = str(short_task(work, episode_length))
+    if args.checkpoint:
+        ckpt = Path(args.checkpoint)
+    else:
+        sys.path.insert(0, str(ROOT / "tests"))
+        from tiny_policy import make_tiny_diffusion_checkpoint
+
+        ckpt = make_tiny_diffusion_checkpoint(work / "tiny_ckpt", input_size=(48, 64),
+                                              dataset_image_size=(96, 128))
+        print(f"no checkpoint given: built a tiny untrained DiffusionPolicy in {ckpt}")
+    size = tuple(int(v) for v in args.image_size.split("x")) if args.image_size else None
+
+    n, k = args.episodes, args.n_envs
+    wall, agg = run_harness(ckpt, work / "harness_a", n, k, 2, size, task)
+    t = agg["time"]
+    print(f"(a) harness, {n} episodes, {k} envs: wall {wall:.1f} s ({wall / n:.2f} s/episode, "
+          f"eval loop {agg['eval_s']:.1f} s); physics {t['physics_s']:.1f} s, render "
+          f"{t['render_s']:.1f} s, policy {t['policy_s']:.1f} s (summed over episodes); "
+          f"success {rate(agg['n_success'], n)}"
+          + ("  [target: 50 episodes <= 180 s]" if not args.quick else ""))
+    if not args.compare_lerobot:
+        return
+    inp = policy_input_size(ckpt)
+    w_h, a_h = run_harness(ckpt, work / "harness_b", n, k, min(10, n), inp, task)
+    w_l, a_l = run_lerobot_eval(ckpt, work / "lerobot_b", n, k, inp, task, episode_length)
+    k_h, k_l = a_h["n_success"], a_l["pc_success"] * n / 100
+    from so101_sim.stats import wilson_interval
+
+    lo_h, hi_h = wilson_interval(round(k_h), n)
+    lo_l, hi_l = wilson_interval(round(k_l), n)
+    overlap = lo_h <= hi_l and lo_l <= hi_h
+    print(f"(b) same checkpoint and seeds 100000.., {inp[0]}x{inp[1]} renders, {k} envs, "
+          f"{min(10, n)} videos each:")
+    print(f"    harness      {w_h:7.1f} s  success {rate(k_h, n)}")
+    print(f"    lerobot-eval {w_l:7.1f} s  success {rate(k_l, n)}")
+    print(f"    speed-up {w_l / w_h:.2f}x (target >= 2x); 95% intervals "
+          f"{'overlap' if overlap else 'DO NOT overlap'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,87 @@
+"""report.md and report.png for one evaluation folder: what was run, how well, how it failed."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from so101_sim.harness.results import EpisodeRecord
+
+
+def write_report(out_dir: str | Path, result: dict[str, Any],
+                 records: Sequence[EpisodeRecord]) -> Path:
+    """Write report.png (success with its interval, failure modes, episode lengths) and a
+    report.md that shows it; return the markdown path."""
+    out = Path(out_dir)
+    agg, cfg = result["aggregated"], result["config"]
+    _plot(out / "report.png", agg, records)
+    lo, hi = agg["success_ci95"]
+    t = agg["time"]
+    lines = [
+        f"# Evaluation: {cfg['policy']} on {cfg['task']}",
+        "",
+        f"**Success {agg['n_success']}/{agg['n_episodes']} = {agg['pc_success']:.1f}%** "
+        f"(95% Wilson interval {lo:.1f}-{hi:.1f}%)",
+        "",
+        "![success, failure modes and episode lengths](report.png)",
+        "",
+        "| item | value |",
+        "| --- | --- |",
+        f"| seeds | {cfg['seed_start']}..{cfg['seed_start'] + cfg['episodes'] - 1} |",
+        f"| images | {cfg['images']} |",
+        f"| failure modes | {_modes(agg['failure_modes'])} |",
+        f"| avg episode length | {agg['avg_episode_len']:.1f} steps |",
+        f"| avg sum / max reward | {agg['avg_sum_reward']:.3f} / {agg['avg_max_reward']:.3f} |",
+        f"| wall time (this run) | {agg['eval_s']:.1f} s, {agg['eval_ep_s']:.2f} s/episode, "
+        f"{cfg['n_envs']} envs |",
+        f"| physics / render / policy | {t['physics_s']:.1f} / {t['render_s']:.1f} / "
+        f"{t['policy_s']:.1f} s (summed over episodes) |",
+    ]
+    for key, value in cfg.get("policy_details", {}).items():
+        lines.append(f"| {key} | {value} |")
+    lines.append(f"| policy fingerprint | `{cfg['policy_fingerprint']}` |")
+    if cfg.get("video_paths"):
+        lines += ["", "## Videos", ""]
+        lines += [f"- [{Path(p).name}]({os.path.relpath(Path(p).resolve(), out.resolve())})"
+                  for p in cfg["video_paths"]]
+    path = out / "report.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _modes(modes: dict[str, int]) -> str:
+    return ", ".join(f"{k}: {v}" for k, v in modes.items()) or "none"
+
+
+def _plot(path: Path, agg: dict[str, Any], records: Sequence[EpisodeRecord]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(12, 3.6),
+                                        gridspec_kw={"width_ratios": [1, 2, 2]})
+    rate, (lo, hi) = agg["pc_success"], agg["success_ci95"]
+    ax1.bar([0], [rate], color="tab:green", width=0.6)
+    ax1.errorbar([0], [rate], yerr=[[rate - lo], [hi - rate]], color="black", capsize=8)
+    ax1.set(xlim=(-1, 1), ylim=(0, 100), xticks=[], ylabel="success (%)",
+            title=f"{agg['n_success']}/{agg['n_episodes']}, 95% CI")
+
+    modes = agg["failure_modes"] or {"(no failures)": 0}
+    ax2.bar(list(modes), list(modes.values()), color="tab:red")
+    ax2.set(ylabel="episodes", title="failure modes", ylim=(0, max(1, *modes.values()) * 1.1))
+    ax2.yaxis.get_major_locator().set_params(integer=True)
+    ax2.tick_params(axis="x", labelrotation=20)
+
+    ok = [r.steps for r in records if r.success]
+    bad = [r.steps for r in records if not r.success]
+    ax3.hist([ok, bad], bins=20, stacked=True, color=["tab:green", "tab:red"],
+             label=["success", "failure"])
+    ax3.set(xlabel="episode length (steps)", ylabel="episodes", title="episode length")
+    ax3.yaxis.get_major_locator().set_params(integer=True)
+    ax3.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

@@ -1,0 +1,291 @@
+"""Closed-loop evaluation: K env workers, one batched policy call per round, results on disk.
+
+Each round, every env that has used up its action chunk sends its last ``n_obs_steps``
+observations; the policy answers all of them in one ``predict_chunks`` call, and each worker
+executes its chunk (``n_action_steps`` actions) before the next round. An episode's outcome
+depends only on its seed, the policy and the task: episodes start from their seed, the
+policy's per-episode state is per slot and seeded by the episode seed, and the lerobot adapter
+keeps batched inference bitwise independent of which envs share a batch.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from so101_sim.harness.policies import ChunkRequest, EvalPolicy, PolicyInfo, load_policy
+from so101_sim.harness.results import EpisodeRecord, RunDir, aggregate, per_episode
+from so101_sim.harness.workers import EnvPool, WorkerConfig, WorkerDied
+from so101_sim.recording import EVAL_SEED_START
+from so101_sim.task import TaskSpec, load_task
+
+VIDEO_ONLY_SIZE = (240, 320)  # render size for videos of policies that use no cameras
+
+
+@dataclass
+class Rendering:
+    """How camera frames reach the policy; ``label`` goes into the summary and report."""
+
+    render_size: tuple[int, int]
+    input_size: tuple[int, int] | None
+    label: str
+
+    @property
+    def resize(self) -> bool:
+        return self.input_size is not None and self.render_size != self.input_size
+
+
+def choose_rendering(info: PolicyInfo, image_size: tuple[int, int] | None) -> Rendering:
+    """Default: render at the training data's size and resize like training did (faithful);
+    ``image_size`` equal to the policy's input size renders there directly (fast)."""
+    if not info.cameras:
+        size = tuple(image_size) if image_size else VIDEO_ONLY_SIZE
+        return Rendering(size, None, f"no camera input (state only); videos rendered at "
+                                     f"{_hw(size)}")
+    inp = tuple(info.image_size)
+    size = tuple(image_size) if image_size else tuple(info.train_image_size or inp)
+    if size == inp:
+        label = f"direct: rendered at the policy's input size {_hw(inp)}, no resize"
+        if info.train_image_size and tuple(info.train_image_size) != inp:
+            label += (f" (training frames were recorded at {_hw(info.train_image_size)} and "
+                      "resized: fast path, not the faithful one)")
+        return Rendering(size, inp, label)
+    label = f"resized: rendered at {_hw(size)}, resize_frames to {_hw(inp)}"
+    if info.train_image_size and tuple(info.train_image_size) == size:
+        label = f"faithful: rendered at the training data's {_hw(size)}, resize_frames to " \
+                f"{_hw(inp)}"
+    elif info.train_image_size:
+        label += f" (training data was recorded at {_hw(info.train_image_size)})"
+    return Rendering(size, inp, label)
+
+
+def _hw(size: Any) -> str:
+    return f"{size[0]}x{size[1]}"
+
+
+@dataclass
+class _Slot:
+    """The episode running in one worker, as the parent sees it."""
+
+    seed: int | None = None
+    episode_ix: int = 0
+    video: str | None = None
+    history: deque = field(default_factory=deque)
+    needs_chunk: bool = False
+    t0: float = 0.0
+    steps: int = 0
+    rewards: list[float] = field(default_factory=list)
+    physics_s: float = 0.0
+    render_s: float = 0.0
+    policy_s: float = 0.0
+
+
+def evaluate(policy: EvalPolicy | str, *, task: str = "pick_place", episodes: int = 50,
+             n_envs: int = 8, seed_start: int = EVAL_SEED_START, out_dir: str | Path | None = None,
+             videos: int = 2, image_size: tuple[int, int] | None = None, resume: bool = False,
+             allow_train_seeds: bool = False, worker_timeout_s: float = 600.0,
+             max_retries: int = 2, progress: bool = True, report: bool = True,
+             log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Evaluate `policy` on `episodes` seeds from `seed_start`; return the eval_info dict.
+
+    `policy` is an ``EvalPolicy``, ``"expert"`` or a lerobot checkpoint directory. Writes
+    episodes.jsonl (as episodes end), eval_info.json, videos of the first `videos` episodes
+    and report.md/report.png into `out_dir` (default outputs/eval/<policy>-<task>-<time>).
+    """
+    spec = load_task(task)
+    if not isinstance(policy, EvalPolicy):
+        policy = load_policy(policy, task=task)
+    _check_args(episodes, n_envs, seed_start, videos, allow_train_seeds)
+    info = policy.info
+    rendering = choose_rendering(info, image_size)
+    if out_dir is None:
+        stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+        out_dir = Path("outputs/eval") / f"{info.name}-{spec.name}-{stamp}"
+    run = RunDir(out_dir)
+    identity = {
+        "policy": info.name, "policy_fingerprint": info.fingerprint, "task": spec.name,
+        "task_sha256": hashlib.sha256(json.dumps(
+            {k: v for k, v in spec.to_dict().items() if k != "source"}, sort_keys=True,
+            default=list).encode()).hexdigest(),
+        "seed_start": seed_start, "episodes": episodes,
+        "render_size": list(rendering.render_size),
+        "policy_image_size": list(rendering.input_size) if rendering.input_size else None,
+    }
+    done = {s: r for s, r in run.prepare(identity, resume).items()
+            if seed_start <= s < seed_start + episodes}
+    todo = deque(s for s in range(seed_start, seed_start + episodes) if s not in done)
+    log(f"so101-sim eval: {info.name} on {spec.name}, seeds {seed_start}.."
+        f"{seed_start + episodes - 1} ({len(done)} done, {len(todo)} to run), "
+        f"{min(n_envs, max(1, len(todo)))} envs; images: {rendering.label}")
+
+    t_start = time.perf_counter()
+    n_run = 0
+    if todo:
+        n_run = _run(policy, run, spec, rendering, todo, done, seed_start, episodes,
+                     n_envs, videos, worker_timeout_s, max_retries, progress)
+    eval_s = time.perf_counter() - t_start
+
+    records = [done[s] for s in sorted(done)]
+    aggregated = aggregate(records, eval_s, n_run)
+    result = {
+        "per_episode": per_episode(records),
+        "aggregated": aggregated,
+        "config": {**identity, "n_envs": n_envs, "images": rendering.label,
+                   "policy_details": info.details,
+                   "video_paths": [r.video for r in records if r.video]},
+    }
+    result["summary"] = summary_line(info.name, spec.name, aggregated, run.path)
+    run.write_info(result)
+    if report:
+        from so101_sim.harness.report import write_report
+
+        write_report(run.path, result, records)
+    log(result["summary"])
+    return result
+
+
+def summary_line(policy: str, task: str, agg: dict[str, Any], out: Path) -> str:
+    lo, hi = agg["success_ci95"]
+    t = agg["time"]
+    modes = ", ".join(f"{k} {v}" for k, v in agg["failure_modes"].items()) or "none"
+    return (f"{policy} on {task}: success {agg['n_success']}/{agg['n_episodes']} = "
+            f"{agg['pc_success']:.1f}% (95% CI {lo:.1f}-{hi:.1f}); failures: {modes}; "
+            f"avg length {agg['avg_episode_len']:.0f} steps; {agg['eval_s']:.1f} s "
+            f"({agg['eval_ep_s']:.2f} s/episode; physics {t['physics_s']:.1f} s, render "
+            f"{t['render_s']:.1f} s, policy {t['policy_s']:.1f} s) -> {out}")
+
+
+def _check_args(episodes: int, n_envs: int, seed_start: int, videos: int,
+                allow_train_seeds: bool) -> None:
+    if episodes < 1:
+        raise ValueError(f"episodes={episodes} is invalid; expected at least 1")
+    if n_envs < 1:
+        raise ValueError(f"n_envs={n_envs} is invalid; expected at least 1")
+    if videos < 0:
+        raise ValueError(f"videos={videos} is invalid; expected 0 or more")
+    if seed_start < 0:
+        raise ValueError(f"seed_start={seed_start} is invalid; seeds are >= 0")
+    if seed_start < EVAL_SEED_START and not allow_train_seeds:
+        raise ValueError(f"seed_start={seed_start} is a training seed (demos use seeds below "
+                         f"{EVAL_SEED_START}); evaluate on seeds >= {EVAL_SEED_START}, or pass "
+                         "--allow-train-seeds to measure on training seeds on purpose")
+
+
+def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, todo: deque,
+         done: dict[int, EpisodeRecord], seed_start: int, episodes: int, n_envs: int,
+         videos: int, worker_timeout_s: float, max_retries: int, progress: bool) -> int:
+    """Run every seed in `todo`; add each finished episode to `done` and to the run folder."""
+    from tqdm import tqdm
+
+    info = policy.info
+    cfg = WorkerConfig(task=task, render_size=rendering.render_size, cameras=info.cameras,
+                       env_state=info.needs_env_state, n_obs_steps=info.n_obs_steps)
+    failures: Counter[int] = Counter()
+    bar = tqdm(total=episodes, initial=len(done), unit="ep", disable=not progress,
+               dynamic_ncols=True)
+    n_run = 0
+    pool = EnvPool(min(n_envs, len(todo)), cfg, timeout_s=worker_timeout_s)
+    slots = [_Slot() for _ in range(pool.size)]
+
+    def fail(i: int, why: str) -> None:
+        s = slots[i]
+        seed = s.seed
+        run.append(EpisodeRecord(seed=seed, episode_ix=s.episode_ix, status="error",
+                                 steps=s.steps, seconds=time.perf_counter() - s.t0, error=why))
+        slots[i] = _Slot()
+        failures[seed] += 1
+        if failures[seed] > max_retries:
+            raise RuntimeError(f"episode with seed {seed} failed {failures[seed]} times; last "
+                               f"error: {why.strip()}")
+        bar.write(f"so101-sim eval: seed {seed}: {why.splitlines()[0]}; running it again")
+        todo.appendleft(seed)
+
+    def handle(replies: dict[int, Any]) -> None:
+        nonlocal n_run
+        for i, reply in replies.items():
+            s = slots[i]
+            if isinstance(reply, WorkerDied | str):
+                fail(i, str(reply))
+                continue
+            s.physics_s += reply["physics_s"]
+            s.render_s += reply["render_s"]
+            s.steps += reply.get("steps", 0)
+            s.rewards += reply.get("rewards", [])
+            if reply.get("done"):
+                rec = EpisodeRecord(
+                    seed=s.seed, episode_ix=s.episode_ix, success=reply["success"],
+                    failure_mode=reply["failure_mode"], steps=s.steps,
+                    sum_reward=float(sum(s.rewards)), max_reward=float(max(s.rewards)),
+                    seconds=time.perf_counter() - s.t0, physics_s=s.physics_s,
+                    render_s=s.render_s, policy_s=s.policy_s, video=reply.get("video"),
+                    actions_sha=reply["actions_sha"])
+                run.append(rec)
+                done[rec.seed] = rec
+                n_run += 1
+                slots[i] = _Slot()
+                bar.update(1)
+                rate = 100.0 * sum(r.success for r in done.values()) / len(done)
+                bar.set_postfix_str(f"success {rate:.1f}%")
+                continue
+            t0 = time.perf_counter()
+            new = [_to_policy_obs(o, rendering) for o in reply["history"]]
+            s.policy_s += time.perf_counter() - t0  # image preprocessing counts as policy
+            if not s.history:  # episode start: repeat the first observation To times
+                new = new * info.n_obs_steps
+            s.history = deque([*s.history, *new], maxlen=info.n_obs_steps)
+            s.needs_chunk = True
+
+    try:
+        while todo or any(s.seed is not None for s in slots):
+            for i, s in enumerate(slots):
+                if s.seed is None and todo:
+                    seed = todo.popleft()
+                    ix = seed - seed_start
+                    video = run.video_path(ix, seed) if ix < videos else None
+                    slots[i] = _Slot(seed=seed, episode_ix=ix, t0=time.perf_counter(),
+                                     video=str(video) if video else None)
+                    policy.start_episode(i, seed)
+                    pool.send(i, ("reset", seed, slots[i].video))
+            handle(pool.collect())
+            ready = [i for i, s in enumerate(slots) if s.needs_chunk]
+            if not ready:
+                continue
+            requests = [ChunkRequest(i, slots[i].seed, list(slots[i].history)) for i in ready]
+            t0 = time.perf_counter()
+            actions = np.asarray(policy.predict_chunks(requests), dtype=np.float32)
+            share = (time.perf_counter() - t0) / len(ready)
+            want = (len(ready), info.n_action_steps, 6)
+            if actions.shape != want:
+                raise RuntimeError(f"policy {info.name!r} returned actions of shape "
+                                   f"{actions.shape}; expected {want} (requests, "
+                                   "n_action_steps, joints)")
+            for j, i in enumerate(ready):
+                slots[i].needs_chunk = False
+                slots[i].policy_s += share
+                pool.send(i, ("act", actions[j]))
+            handle(pool.collect())
+    finally:
+        pool.close()
+        bar.close()
+    return n_run
+
+
+def _to_policy_obs(obs: dict[str, Any], rendering: Rendering) -> dict[str, Any]:
+    """Resize a worker's frames to the policy's input size with the training resize."""
+    if "pixels" not in obs or not rendering.resize:
+        return obs
+    from so101_sim.image_pipeline import resize_frames
+
+    cams = list(obs["pixels"])
+    small = resize_frames(np.stack([obs["pixels"][c] for c in cams]), rendering.input_size)
+    hwc = small.permute(0, 2, 3, 1).contiguous().numpy()
+    return {**obs, "pixels": {c: hwc[k] for k, c in enumerate(cams)}}

@@ -1,0 +1,104 @@
+"""Success-rate regression tests that fail on real drops, not on noise.
+
+``assert_success_rate(policy, baseline=..., episodes=N)`` runs N evaluation episodes and fails
+only when the success rate is significantly below ``baseline``: a one-sided exact binomial
+test, H0 "the rate is `baseline`" against H1 "it is lower", at level ``alpha`` (default 0.01,
+so a policy as good as its baseline fails CI in at most 1% of runs). It prints the rate, its
+95% Wilson interval, the baseline and the p-value either way.
+
+Choosing the baseline: a rate measured as k/n is itself uncertain; pass the lower end of its
+Wilson interval (``so101_sim.stats.wilson_interval(k, n)[0]``), e.g. 500/500 -> 0.992, so the
+baseline's own noise cannot fail the test. A baseline of exactly 1.0 fails on any failure.
+
+Choosing N: the test detects a drop only with some probability (power). The smallest N that
+catches a drop from ``baseline`` to ``true_rate`` with 80% power at alpha = 0.01
+(``so101_sim.stats.episodes_needed``):
+
+    baseline -> true rate    N      |  baseline -> true rate    N
+    0.99 -> 0.90            42      |  0.90 -> 0.80           122
+    0.95 -> 0.85            82      |  0.80 -> 0.60            52
+    0.95 -> 0.90           267      |  0.50 -> 0.30            64
+
+Halving the drop roughly quadruples N. With fewer episodes the test still never fails a
+policy at its baseline more often than alpha; it just misses smaller drops.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from so101_sim.recording import EVAL_SEED_START
+from so101_sim.stats import p_value_below, wilson_interval
+
+
+@dataclass(frozen=True)
+class RateCheck:
+    """The outcome of one success-rate test."""
+
+    successes: int
+    n: int
+    baseline: float
+    alpha: float
+    p_value: float
+    ci95: tuple[float, float]
+
+    @property
+    def rate(self) -> float:
+        return self.successes / self.n
+
+    @property
+    def passed(self) -> bool:
+        return self.p_value >= self.alpha
+
+    def line(self) -> str:
+        lo, hi = self.ci95
+        verdict = "OK" if self.passed else "SIGNIFICANTLY BELOW BASELINE"
+        return (f"success {self.successes}/{self.n} = {100 * self.rate:.1f}% (95% Wilson "
+                f"{100 * lo:.1f}-{100 * hi:.1f}%), baseline {100 * self.baseline:.1f}%, "
+                f"one-sided binomial p = {self.p_value:.4g} (alpha {self.alpha}): {verdict}")
+
+
+def check_success_rate(successes: int, n: int, baseline: float,
+                       alpha: float = 0.01) -> RateCheck:
+    """Test `successes`/`n` against `baseline` (fractions); see the module docstring."""
+    if not 0.0 < baseline <= 1.0:
+        raise ValueError(f"baseline={baseline} is invalid; expected a success rate in (0, 1] "
+                         "as a fraction (0.95, not 95)")
+    if not 0.0 < alpha < 0.5:
+        raise ValueError(f"alpha={alpha} is invalid; expected a small level such as 0.01")
+    return RateCheck(successes, n, baseline, alpha, p_value_below(successes, n, baseline),
+                     wilson_interval(successes, n))
+
+
+def assert_success_rate(policy: Any, *, baseline: float, episodes: int,
+                        alpha: float = 0.01, task: str = "pick_place",
+                        seed_start: int = EVAL_SEED_START, n_envs: int = 2,
+                        out_dir: str | Path | None = None, **evaluate_kwargs: Any) -> RateCheck:
+    """Evaluate `policy` ("expert", a checkpoint directory or an ``EvalPolicy``) on
+    `episodes` seeds and fail the calling test if its success rate is significantly below
+    `baseline`. Returns the ``RateCheck`` when it passes."""
+    from so101_sim.harness import evaluate
+
+    evaluate_kwargs = {"videos": 0, "progress": False, "report": False, **evaluate_kwargs}
+    with tempfile.TemporaryDirectory(prefix="so101_rate_") as tmp:
+        result = evaluate(policy, task=task, episodes=episodes, n_envs=n_envs,
+                          seed_start=seed_start, out_dir=out_dir or Path(tmp) / "eval",
+                          log=lambda _: None, **evaluate_kwargs)
+    agg = result["aggregated"]
+    check = check_success_rate(agg["n_success"], agg["n_episodes"], baseline, alpha)
+    print(f"{result['config']['policy']} on {result['config']['task']}: {check.line()}; "
+          f"failures {agg['failure_modes'] or 'none'}")
+    if not check.passed:
+        _fail(f"success rate regression: {check.line()}; failure modes {agg['failure_modes']}")
+    return check
+
+
+def _fail(message: str) -> None:
+    try:
+        import pytest
+    except ImportError:  # used outside pytest
+        raise AssertionError(message) from None
+    pytest.fail(message, pytrace=False)

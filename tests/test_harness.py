@@ -1,0 +1,292 @@
+"""The rollout harness (`so101-sim eval`): determinism across K, outputs, resume, bad input.
+
+Real env workers, real rendering, real files. The diffusion checkpoint is tiny and untrained
+(tests/tiny_policy.py) and episodes are cut short, so these are about mechanics, not skill.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import shutil
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+
+from so101_sim.cli import main
+from so101_sim.harness import ChunkRequest, PolicyInfo, evaluate, expert_policy, load_policy
+from so101_sim.harness.lerobot_policy import LeRobotPolicy
+
+sys.path.insert(0, str(Path(__file__).parent))
+from tiny_policy import make_tiny_diffusion_checkpoint, short_task
+
+SEEDS = 8
+RESULT_KEYS = ("seed", "success", "failure_mode", "steps", "sum_reward", "actions_sha")
+
+
+def _outcomes(result: dict) -> list[tuple]:
+    return [tuple(e[k] for k in RESULT_KEYS) for e in result["per_episode"]]
+
+
+def _quiet(**kw):
+    return {"progress": False, "log": lambda _: None, **kw}
+
+
+@pytest.fixture(scope="module")
+def tiny_ckpt(tmp_path_factory) -> Path:
+    return make_tiny_diffusion_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny",
+                                          input_size=(48, 64), dataset_image_size=(96, 128))
+
+
+@pytest.fixture(scope="module")
+def short(tmp_path_factory) -> Path:
+    return short_task(tmp_path_factory.mktemp("task"), max_steps=16)  # two chunks of 8
+
+
+@pytest.fixture(scope="module")
+def expert_k1(tmp_path_factory) -> dict:
+    return evaluate("expert", episodes=SEEDS, n_envs=1, videos=0, report=False,
+                    out_dir=tmp_path_factory.mktemp("expert_k1") / "run", **_quiet())
+
+
+# ------------------------------------------------------------------------ determinism
+def test_expert_results_do_not_depend_on_n_envs(expert_k1, tmp_path):
+    k4 = evaluate("expert", episodes=SEEDS, n_envs=4, videos=0, report=False,
+                  out_dir=tmp_path / "k4", **_quiet())
+    assert _outcomes(k4) == _outcomes(expert_k1)
+    assert all(e["success"] for e in k4["per_episode"])
+
+
+def test_diffusion_results_do_not_depend_on_n_envs(tiny_ckpt, short, tmp_path):
+    policy = LeRobotPolicy(tiny_ckpt, log=lambda _: None)
+    assert policy.batch_size == 8, "padded batches are position-independent here"
+    runs = {k: evaluate(policy, task=str(short), episodes=SEEDS, n_envs=k, videos=0,
+                        report=False, out_dir=tmp_path / f"k{k}", **_quiet())
+            for k in (1, 4)}
+    assert _outcomes(runs[1]) == _outcomes(runs[4])
+    shas = {e["actions_sha"] for e in runs[1]["per_episode"]}
+    assert len(shas) == SEEDS, "each seed samples its own diffusion noise"
+    assert "faithful" in runs[1]["config"]["images"]
+
+
+def test_padded_rows_do_not_depend_on_batch_mates(tiny_ckpt):
+    """Why the adapter pads: on CPU a row's bits can change with the batch size."""
+    policy = LeRobotPolicy(tiny_ckpt, log=lambda _: None)
+    rng = np.random.default_rng(0)
+    reqs = [ChunkRequest(i, 100000 + i, [{
+        "agent_pos": rng.uniform(-50, 50, 6).astype(np.float32),
+        "pixels": {c: rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+                   for c in ("front", "side")}} for _ in range(2)]) for i in range(4)]
+
+    def chunks(batch_size: int, rows: list) -> np.ndarray:
+        policy.batch_size = batch_size
+        for r in rows:
+            policy.start_episode(r.slot, r.seed)
+        return policy.predict_chunks(rows)
+
+    padded_alone = chunks(8, reqs[:1])
+    padded_together = chunks(8, reqs)
+    assert np.array_equal(padded_alone[0], padded_together[0])
+    assert np.array_equal(chunks(1, reqs[:1])[0], chunks(1, reqs[2:3] + reqs[:1])[1])
+
+
+# ------------------------------------------------------------------------ outputs and resume
+def test_outputs_videos_report_and_resume(tmp_path, capsys):
+    out = tmp_path / "run"
+    code = main(["eval", "--policy", "expert", "--episodes", "5", "--n-envs", "2",
+                 "--videos", "1", "--image-size", "48x64", "--out", str(out)])
+    assert code == 0
+    summary = capsys.readouterr().out
+    assert "success 5/5 = 100.0% (95% CI" in summary
+    info = json.loads((out / "eval_info.json").read_text())
+    agg = info["aggregated"]
+    for key in ("pc_success", "success_ci95", "n_episodes", "failure_modes", "avg_sum_reward",
+                "avg_max_reward", "avg_episode_len", "eval_s", "eval_ep_s"):
+        assert key in agg, key
+    assert set(agg["time"]) >= {"physics_s", "render_s", "policy_s"}
+    assert agg["n_episodes"] == 5 and agg["pc_success"] == 100.0
+    assert agg["success_ci95"][0] < 100.0 == agg["success_ci95"][1]
+    lines = (out / "episodes.jsonl").read_text().splitlines()
+    assert sorted(json.loads(x)["seed"] for x in lines) == list(range(100000, 100005))
+    video = out / "videos" / "episode_0000_seed100000.mp4"
+    frames = imageio.mimread(video, memtest=False)
+    assert len(frames) > 100 and frames[0].shape[0] >= 240
+    assert not list((out / "videos").glob("*.part.mp4"))
+    report = (out / "report.md").read_text()
+    assert "report.png" in report and (out / "report.png").stat().st_size > 10_000
+    assert "Wilson" in report
+
+    # A killed run: three episodes on disk, the last line torn mid-write.
+    (out / "episodes.jsonl").write_text("\n".join(lines[:3]) + "\n" + lines[3][:25])
+    (out / "eval_info.json").unlink()
+    assert main(["eval", "--policy", "expert", "--episodes", "5", "--n-envs", "2",
+                 "--videos", "1", "--image-size", "48x64", "--out", str(out),
+                 "--resume"]) == 0
+    assert "(3 done, 2 to run)" in capsys.readouterr().out
+    again = json.loads((out / "eval_info.json").read_text())
+    assert [e["seed"] for e in again["per_episode"]] == list(range(100000, 100005))
+    assert _strip_times(again["per_episode"]) == _strip_times(info["per_episode"])
+
+    with pytest.raises(ValueError, match="--resume"):
+        evaluate("expert", episodes=5, out_dir=out, **_quiet())
+    with pytest.raises(ValueError, match="seed_start: 100000 there, 100100 now"):
+        evaluate("expert", episodes=5, seed_start=100100, out_dir=out, resume=True, **_quiet())
+    with pytest.raises(ValueError, match="policy_fingerprint"):
+        evaluate(_HoldStill(), episodes=5, out_dir=out, resume=True, **_quiet())
+
+
+def _strip_times(episodes: list[dict]) -> list[dict]:
+    return [{k: v for k, v in e.items() if k not in ("seconds", "video")} for e in episodes]
+
+
+# ------------------------------------------------------------------------ user policies
+class _HoldStill:
+    """A user policy: looks at the front camera, holds the arm where it is, 4 steps a chunk."""
+
+    info = PolicyInfo(name="hold", cameras=("front",), image_size=(48, 64), n_obs_steps=2,
+                      n_action_steps=4, fingerprint="hold-v1")
+
+    def __init__(self, bad_seed: int | None = None) -> None:
+        self.bad_seed = bad_seed
+        self.seen: list[tuple] = []
+
+    def start_episode(self, slot: int, seed: int) -> None:
+        pass
+
+    def predict_chunks(self, requests):
+        out = []
+        for r in requests:
+            self.seen.append((len(r.history), r.history[-1]["pixels"]["front"].shape))
+            a = np.repeat(r.history[-1]["agent_pos"][None], 4, axis=0)
+            if r.seed == self.bad_seed:
+                a[:] = np.nan
+            out.append(a)
+        return np.stack(out)
+
+
+def test_user_policy_protocol(short, tmp_path):
+    policy = _HoldStill()
+    res = evaluate(policy, task=str(short), episodes=2, n_envs=2, videos=0, report=False,
+                   out_dir=tmp_path / "run", **_quiet())
+    assert {(2, (48, 64, 3))} == set(policy.seen)
+    assert [e["failure_mode"] for e in res["per_episode"]] == ["never_grasped"] * 2
+    assert "direct" in res["config"]["images"]
+
+
+def test_policy_error_is_retried_then_reported(short, tmp_path):
+    with pytest.raises(RuntimeError, match=r"(?s)seed 100001 failed 3 times.*NaN"):
+        evaluate(_HoldStill(bad_seed=100001), task=str(short), episodes=3, n_envs=2,
+                 videos=0, report=False, out_dir=tmp_path / "run", **_quiet())
+    lines = [json.loads(x) for x in (tmp_path / "run" / "episodes.jsonl").read_text()
+             .splitlines()]
+    assert [x["seed"] for x in lines if x["status"] == "error"] == [100001] * 3
+
+
+def test_dead_worker_episode_is_marked_error_and_rerun(expert_k1, tmp_path):
+    out = tmp_path / "run"
+    killed: list[int] = []
+
+    def killer() -> None:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not killed:
+            f = out / "episodes.jsonl"
+            if f.exists() and f.read_text().count("\n") >= 1:
+                workers = [p for p in mp.active_children() if p.name.startswith("so101-eval")]
+                if workers:
+                    os.kill(workers[0].pid, signal.SIGKILL)
+                    killed.append(workers[0].pid)
+            time.sleep(0.01)
+
+    thread = threading.Thread(target=killer, daemon=True)
+    thread.start()
+    res = evaluate("expert", episodes=SEEDS, n_envs=2, videos=0, report=False, out_dir=out,
+                   **_quiet())
+    thread.join()
+    assert killed, "no worker was killed"
+    lines = [json.loads(x) for x in (out / "episodes.jsonl").read_text().splitlines()]
+    errors = [x for x in lines if x["status"] == "error"]
+    assert errors and "died" in errors[0]["error"]
+    assert _outcomes(res) == _outcomes(expert_k1)
+
+
+# ------------------------------------------------------------------------ bad input
+def test_training_seeds_are_refused(tmp_path):
+    with pytest.raises(ValueError, match="--allow-train-seeds"):
+        evaluate("expert", episodes=2, seed_start=0, out_dir=tmp_path / "run", **_quiet())
+
+
+def test_unknown_task_and_policy_are_named(tmp_path, capsys):
+    with pytest.raises(ValueError, match="no_such_task"):
+        evaluate("expert", task="no_such_task", episodes=2, out_dir=tmp_path / "a", **_quiet())
+    assert main(["eval", "--policy", str(tmp_path / "nothing"), "--episodes", "1",
+                 "--out", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err
+    assert "nothing not found" in err and "config.json" in err
+
+
+def _broken_copy(src: Path, dst: Path, edit) -> Path:
+    shutil.copytree(src, dst)
+    edit(dst)
+    return dst
+
+
+def test_bad_checkpoints_are_named(tiny_ckpt, tmp_path):
+    def corrupt_config(d: Path) -> None:
+        (d / "config.json").write_text('{"type": "diffusion", ')
+
+    def truncate_weights(d: Path) -> None:
+        data = (d / "model.safetensors").read_bytes()
+        (d / "model.safetensors").write_bytes(data[: len(data) // 3])
+
+    def edit_features(key: str, value):
+        def edit(d: Path) -> None:
+            cfg = json.loads((d / "config.json").read_text())
+            feats = cfg["input_features"]
+            if value is None:
+                feats[key.replace("side", "wrist")] = feats.pop(key)
+            else:
+                feats[key]["shape"] = value
+            (d / "config.json").write_text(json.dumps(cfg))
+        return edit
+
+    cases = [
+        (corrupt_config, ValueError, "config.json is not a lerobot policy config"),
+        (truncate_weights, RuntimeError, "model.safetensors could not be loaded"),
+        (edit_features("observation.images.side", None), ValueError, "camera 'wrist'"),
+        (edit_features("observation.state", [7]), ValueError, r"observation.state of shape \(7,\)"),
+        (lambda d: (d / "policy_preprocessor.json").unlink(), FileNotFoundError,
+         "no policy_preprocessor.json"),
+    ]
+    for n, (edit, exc, pattern) in enumerate(cases):
+        bad = _broken_copy(tiny_ckpt, tmp_path / f"bad{n}", edit)
+        with pytest.raises(exc, match=pattern):
+            load_policy(bad)
+
+
+def test_inference_overrides_are_checked(tiny_ckpt):
+    messages: list[str] = []
+    policy = LeRobotPolicy(tiny_ckpt, n_action_steps=4, batch_size=1, log=messages.append)
+    assert policy.info.n_action_steps == 4
+    assert any("n_action_steps=8; using 4 as asked" in m for m in messages)
+    with pytest.raises(ValueError, match=r"n_action_steps=20 is invalid.*1\.\.15"):
+        LeRobotPolicy(tiny_ckpt, n_action_steps=20, log=messages.append)
+    with pytest.raises(ValueError, match="apply to lerobot checkpoints"):
+        load_policy("expert", batch_size=4)
+
+
+def test_import_so101_sim_harness_loads_no_torch():
+    import subprocess
+
+    code = ("import sys, so101_sim, so101_sim.harness, so101_sim.testing; "
+            "print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout
+    assert out.strip() == "False"
+    assert expert_policy().info.needs_env_state
