@@ -18,6 +18,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import os
 import shutil
 import signal
 import time
@@ -26,6 +27,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+# A spinning OpenMP pool next to another busy process (a recording, the harness) made each step
+# ~6x slower on 2 cores; sleeping waiters cost little when the cores are free. Must precede torch.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import torch
 from tqdm import tqdm
 
