@@ -67,7 +67,7 @@ def run_lerobot(dataset: Path, preset_name: str, steps: int, batch: int, work: P
             f"--policy.crop_ratio={d['crop_shape'][0] / preset.image_size[0]}",
             f"--output_dir={work / 'lerobot'}", f"--steps={steps}", f"--batch_size={batch}",
             f"--num_workers={workers}", "--log_freq=1", "--save_checkpoint=false",
-            "--eval_freq=0", "--wandb.enable=false",
+            "--wandb.enable=false",
             f"--dataset.use_imagenet_stats={str(preset.image_normalize == 'imagenet').lower()}"]
     for k, v in d.items():
         if k not in _SKIP:

@@ -65,7 +65,8 @@ def _plot(path: Path, agg: dict[str, Any], records: Sequence[EpisodeRecord]) -> 
                                         gridspec_kw={"width_ratios": [1, 2, 2]})
     rate, (lo, hi) = agg["pc_success"], agg["success_ci95"]
     ax1.bar([0], [rate], color="tab:green", width=0.6)
-    ax1.errorbar([0], [rate], yerr=[[rate - lo], [hi - rate]], color="black", capsize=8)
+    err = [[max(0.0, rate - lo)], [max(0.0, hi - rate)]]  # never negative, even by rounding
+    ax1.errorbar([0], [rate], yerr=err, color="black", capsize=8)
     ax1.set(xlim=(-1, 1), ylim=(0, 100), xticks=[], ylabel="success (%)",
             title=f"{agg['n_success']}/{agg['n_episodes']}, 95% CI")
 
