@@ -27,6 +27,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from so101_sim.cli import parse_image_size
+
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 
@@ -129,7 +131,7 @@ def main() -> None:
         ckpt = make_tiny_diffusion_checkpoint(work / "tiny_ckpt", input_size=(48, 64),
                                               dataset_image_size=(96, 128))
         print(f"no checkpoint given: built a tiny untrained DiffusionPolicy in {ckpt}")
-    size = tuple(int(v) for v in args.image_size.split("x")) if args.image_size else None
+    size = parse_image_size(args.image_size) if args.image_size else None
 
     n, k = args.episodes, args.n_envs
     wall, agg = run_harness(ckpt, work / "harness_a", n, k, 2, size, task)

@@ -31,6 +31,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from so101_sim.cli import parse_image_size
+
 RESULT_TAG = "BENCH_RESULT "
 TARGET_STEPS_S = 50.0
 TARGET_100_MIN = 10.0
@@ -99,7 +101,7 @@ def main() -> None:
     args = p.parse_args()
     if args.quick:
         args.episodes, args.image_size = 2, "96x128"
-    h, w = (int(v) for v in args.image_size.lower().split("x"))
+    h, w = parse_image_size(args.image_size)
     worker_counts = [int(v) for v in args.workers.split(",") if v.strip()]
     cores = len(os.sched_getaffinity(0))
 

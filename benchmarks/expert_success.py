@@ -9,20 +9,13 @@ from __future__ import annotations
 
 import argparse
 import collections
-import math
 import time
 
 from tqdm import tqdm
 
 from so101_sim.env import PickPlaceEnv
 from so101_sim.expert import ScriptedExpert
-
-
-def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    p = k / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
+from so101_sim.stats import wilson_interval
 
 
 def main() -> None:
@@ -49,7 +42,7 @@ def main() -> None:
         if mode != "success":
             failed.append((seed, mode))
     k, n = modes["success"], args.seeds
-    lo, hi = wilson(k, n)
+    lo, hi = wilson_interval(k, n)
     print(f"expert success {k}/{n} = {100 * k / n:.2f}% (95% Wilson [{100 * lo:.2f}, "
           f"{100 * hi:.2f}]) seeds {args.seed_start}..{args.seed_start + n - 1}, "
           f"{time.perf_counter() - t0:.1f} s")
