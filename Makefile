@@ -5,6 +5,7 @@ SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+SHIPPED := policy/pick_place_diffusion
 
 # The first Python 3.12 found: on PATH, under pyenv, or in the usual system places.
 PYTHON312 ?= $(shell for c in python3.12 $$(pyenv root 2>/dev/null)/versions/3.12*/bin/python3.12 \
@@ -33,9 +34,15 @@ $(STAMP): pyproject.toml
 
 demo: $(STAMP)
 	$(VENV)/bin/so101-sim demo --out outputs/demo
-	rm -rf outputs/eval/expert-demo
-	$(VENV)/bin/so101-sim eval --policy expert --episodes 20 --n-envs 2 --videos 2 \
-		--out outputs/eval/expert-demo
+	@# The main job: the shipped diffusion checkpoint closed-loop (the expert until one ships).
+	rm -rf outputs/eval/demo
+	@if [ -f $(SHIPPED)/model.safetensors ]; then \
+		$(VENV)/bin/so101-sim eval --policy $(SHIPPED) --episodes 20 --n-envs 8 --videos 2 \
+			--out outputs/eval/demo; \
+	else \
+		echo "no shipped checkpoint in $(SHIPPED): evaluating the scripted expert"; \
+		$(VENV)/bin/so101-sim eval --policy expert --episodes 20 --n-envs 2 --videos 2 \
+			--out outputs/eval/demo; fi
 
 test: $(STAMP)
 	$(PY) -m pytest -q

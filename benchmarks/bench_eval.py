@@ -108,10 +108,8 @@ def main() -> None:
     args = parser.parse_args()
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("MUJOCO_GL", "egl")
-    # Both commands get sleeping OpenMP waits (the harness sets this itself): with the default
-    # spinning, a torch forward slows down 10x+ whenever env workers hold the other core, which
-    # would make the comparison about OpenMP rather than the harness.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    # Both commands run with the caller's OpenMP settings (libgomp's default unless set): the
+    # harness sets none itself, and neither does lerobot-eval.
 
     work = Path(args.out or tempfile.mkdtemp(prefix="bench_eval_"))
     work.mkdir(parents=True, exist_ok=True)

@@ -5,7 +5,9 @@ preset's image size is done inside the policy with `resize_shape`, and the crop 
 same crop) on the same dataset for the same number of steps, one after the other. Throughput is
 taken from the steady state (ours: the time between logged steps; lerobot-train: a long run
 minus a short one), so start-up, the one-off frame-cache build and checkpoint writing are
-excluded; the wall time including start-up is printed too.
+excluded; the wall time including start-up is printed too. The ratio compares fp32 with
+fp32; a third row shows this trainer with --precision bf16 (wall there excludes the frame
+cache, which it reuses).
 
     .venv/bin/python benchmarks/bench_train.py --dataset ~/so101-runs/data/pp200 --steps 30
 """
@@ -39,11 +41,16 @@ def _cli_value(v) -> str:
     return str(v).lower() if isinstance(v, bool) else str(v)
 
 
-def run_ours(dataset: Path, preset: str, steps: int, batch: int, work: Path) -> dict:
-    out = work / "ours"
+def run_ours(dataset: Path, preset: str, steps: int, batch: int, work: Path,
+             precision: str = "fp32") -> dict:
+    out = work / f"ours_{precision}"
+    if precision != "fp32":  # reuse the fp32 run's decoded frames
+        out.mkdir()
+        (out / "frame_cache").symlink_to(work / "ours_fp32" / "frame_cache")
     code = ("import sys, json; from pathlib import Path; from so101_sim.trainer import train; "
             f"r = train(Path({str(dataset)!r}), Path({str(out)!r}), preset_name={preset!r}, "
-            f"steps={steps}, batch_size={batch}, progress=False, log_every=1)")
+            f"steps={steps}, batch_size={batch}, progress=False, log_every=1, "
+            f"precision={precision!r})")
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -101,16 +108,19 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_train_") as tmp:
         work = Path(tmp)
         ours = run_ours(a.dataset.expanduser(), a.preset, a.steps, batch, work)
+        bf16 = run_ours(a.dataset.expanduser(), a.preset, a.steps, batch, work, "bf16")
         theirs = run_lerobot(a.dataset.expanduser(), a.preset, a.steps, batch, work,
                              a.lerobot_workers)
     print(f"preset {a.preset}, batch {batch}, {a.steps} steps, dataset {a.dataset}, "
           f"torch threads {os.cpu_count()}, load avg {os.getloadavg()[0]:.2f}")
     print("| trainer | samples/s | s/step | wall incl. start-up |")
     print("|---|---|---|---|")
-    for name, r in (("so101-sim train", ours), ("lerobot-train", theirs)):
+    for name, r in (("so101-sim train (fp32)", ours), ("lerobot-train (fp32)", theirs),
+                    ("so101-sim train --precision bf16", bf16)):
         print(f"| {name} | {r['samples_per_s']:.1f} | {r['s_per_step']:.2f} | "
               f"{r['total_s']:.0f} s |")
-    print(f"ratio (samples/s): {ours['samples_per_s'] / theirs['samples_per_s']:.2f}x")
+    print(f"ratio (samples/s), both fp32: {ours['samples_per_s'] / theirs['samples_per_s']:.2f}x"
+          f"; with --precision bf16: {bf16['samples_per_s'] / theirs['samples_per_s']:.2f}x")
 
 
 if __name__ == "__main__":

@@ -30,8 +30,28 @@ def _curve(log: Path, points: int = 8) -> list[dict]:
     return [rows[i] for i in pick]
 
 
+def _precision(train_info: dict) -> str:
+    """'fp32', or which steps ran in which precision when a resume changed it."""
+    hist = train_info.get("precision_history") or [[0, train_info.get("precision", "fp32")]]
+    names = {"fp32": "fp32", "bf16": "bf16 autocast"}
+    if len(hist) == 1:
+        return names.get(hist[0][1], hist[0][1])
+    ends = [h[0] for h in hist[1:]] + [train_info["step"]]
+    return "; ".join(f"{names.get(p, p)} steps {a}-{b}" for (a, p), b in zip(hist, ends,
+                                                                             strict=True))
+
+
+def _eval_rows(eval_info: dict, label: str) -> list[str]:
+    agg, cfg = eval_info["aggregated"], eval_info["config"]
+    lo, hi = agg["success_ci95"]
+    modes = ", ".join(f"{k} {v}" for k, v in sorted(agg.get("failure_modes", {}).items()))
+    return [f"| {label} | **{agg['pc_success']:.1f}%** (95% Wilson [{lo:.1f}, {hi:.1f}]) on "
+            f"{agg['n_episodes']} evaluation seeds from {cfg['seed_start']}; outcomes: "
+            f"{modes or 'n/a'}; images: {cfg.get('images', 'n/a')} |"]
+
+
 def model_card(train_info: dict, eval_info: dict | None, curve: list[dict],
-               hardware: str) -> str:
+               hardware: str, also: list[dict] | None = None) -> str:
     """Markdown model card from the training sidecar, the loss curve and a harness result."""
     t = train_info
     lines = [
@@ -46,18 +66,14 @@ def model_card(train_info: dict, eval_info: dict | None, curve: list[dict],
         f"| policy input | 2 cameras resized to {t['policy_image_size'][0]}x"
         f"{t['policy_image_size'][1]} by {t['image_pipeline']} |",
         f"| steps | {t['step']} of {t['total_steps']} planned, batch {t['batch_size']} |",
+        f"| precision | {_precision(t)} |",
         f"| wall time | {t['train_wall_s'] / 3600:.2f} h |",
         f"| hardware | {hardware} |",
     ]
     if eval_info:
-        agg = eval_info["aggregated"]
-        lo, hi = agg["success_ci95"]
-        lines.append(f"| success | **{agg['pc_success']:.1f}%** (95% Wilson "
-                     f"[{lo:.1f}, {hi:.1f}]) on {agg['n_episodes']} evaluation seeds from "
-                     f"{eval_info['config']['seed_start']} |")
-        modes = ", ".join(f"{k} {v}" for k, v in sorted(agg.get("failure_modes", {}).items()))
-        lines.append(f"| outcomes | {modes or 'n/a'} |")
-        lines.append(f"| eval images | {eval_info['config'].get('images', 'n/a')} |")
+        lines += _eval_rows(eval_info, "success")
+        for other in also or []:
+            lines += _eval_rows(other, "also measured")
     else:
         lines.append("| success | not measured yet |")
     if curve:
@@ -71,7 +87,8 @@ def model_card(train_info: dict, eval_info: dict | None, curve: list[dict],
 
 
 def export_policy(checkpoint: Path, dest: Path, eval_dir: Path | None = None,
-                  hardware: str = "2-core CPU (no GPU)") -> Path:
+                  hardware: str = "2-core CPU (no GPU)",
+                  also_eval: list[Path] | None = None) -> Path:
     """Copy `checkpoint` (a pretrained_model folder) to `dest` with fp16 weights and a card."""
     checkpoint, dest = Path(checkpoint), Path(dest)
     info_path = checkpoint / TRAIN_INFO
@@ -91,7 +108,8 @@ def export_policy(checkpoint: Path, dest: Path, eval_dir: Path | None = None,
     log = checkpoint.parents[2] / "train_log.jsonl"
     curve = _curve(log) if log.is_file() else []
     curve = [r for r in curve if r["step"] <= info["step"]]
-    (tmp / "README.md").write_text(model_card(info, eval_info, curve, hardware))
+    also = [json.loads((Path(d) / "eval_info.json").read_text()) for d in also_eval or []]
+    (tmp / "README.md").write_text(model_card(info, eval_info, curve, hardware, also))
     shutil.rmtree(dest, ignore_errors=True)
     tmp.rename(dest)
     return dest

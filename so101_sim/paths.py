@@ -32,3 +32,11 @@ def envs_dir() -> Path:
 
 def policy_dir() -> Path:
     return data_dir("policy")
+
+
+SHIPPED_POLICY = "pick_place_diffusion"
+
+
+def shipped_policy_dir() -> Path:
+    """The trained checkpoint shipped in the repo (policy/pick_place_diffusion)."""
+    return policy_dir() / SHIPPED_POLICY

@@ -76,6 +76,17 @@ def test_diffusion_results_do_not_depend_on_n_envs(tiny_ckpt, short, tmp_path):
     assert "faithful" in runs[1]["config"]["images"]
 
 
+def test_pipelined_forwards_keep_results_per_seed(tiny_ckpt, short, tmp_path):
+    """More envs than rows per forward: some envs step while the policy runs for others, and
+    forwards go out in whatever order envs ask; every seed's outcome stays the same."""
+    policy = LeRobotPolicy(tiny_ckpt, batch_size=2, log=lambda _: None)
+    runs = {k: evaluate(policy, task=str(short), episodes=SEEDS, n_envs=k, videos=0,
+                        report=False, out_dir=tmp_path / f"k{k}", **_quiet())
+            for k in (2, 5)}
+    assert _outcomes(runs[2]) == _outcomes(runs[5])
+    assert len({e["actions_sha"] for e in runs[5]["per_episode"]}) == SEEDS
+
+
 def test_padded_rows_do_not_depend_on_batch_mates(tiny_ckpt):
     """Why the adapter pads: on CPU a row's bits can change with the batch size."""
     policy = LeRobotPolicy(tiny_ckpt, log=lambda _: None)

@@ -149,6 +149,20 @@ def test_resume_continues_exactly(dataset: Path, tiny: Path, tmp_path: Path) -> 
     assert info["weights"] == "EMA" and info["step"] == 4
 
 
+def test_bf16_precision_trains_and_is_recorded(dataset: Path, tiny: Path, tmp_path: Path) -> None:
+    """bf16 autocast gives a finite loss and fp32 weights; switching on --resume is recorded."""
+    train(dataset, tmp_path / "r", preset_name=str(tiny), steps=2, progress=False)
+    r = train(dataset, tmp_path / "r", preset_name=str(tiny), steps=4, resume=True,
+              progress=False, precision="bf16")
+    assert np.isfinite(r.final_loss)
+    assert {v.dtype for v in _weights(r.pretrained_dir).values()} == {torch.float32}
+    info = json.loads((r.pretrained_dir / "so101_sim_train.json").read_text())
+    assert info["precision"] == "bf16"
+    assert info["precision_history"] == [[0, "fp32"], [2, "bf16"]]
+    with pytest.raises(TrainError, match="precision='fp16' is invalid"):
+        train(dataset, tmp_path / "x", preset_name=str(tiny), steps=1, precision="fp16")
+
+
 def test_checkpoint_loads_through_lerobot(dataset: Path, tiny: Path, tmp_path: Path) -> None:
     from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
     from lerobot.policies.factory import make_pre_post_processors

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -29,10 +28,10 @@ from typing import Any
 
 import numpy as np
 
-# OpenMP's default spin-waiting makes a 2-thread torch forward 10-40x slower whenever the env
-# workers or other processes hold the other core (measured here: 0.4 s -> 12-19 s); sleeping
-# waits cost little. It is read when torch loads, so it only helps if torch is not loaded yet.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# OpenMP waits: the harness keeps libgomp's default (spin briefly, then sleep). Env workers are
+# idle while the policy runs, so nothing competes with its threads; OMP_WAIT_POLICY=PASSIVE
+# made a DDIM-10 forward of 8 rows 2.5x slower here (0.31 s vs 0.12 s: the U-Net's many small
+# parallel regions each pay a futex wake-up) and a 16-episode eval 1.9x slower.
 import torch
 
 from so101_sim.env import CAMERAS, ENV_STATE_SIZE

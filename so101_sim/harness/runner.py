@@ -1,11 +1,12 @@
-"""Closed-loop evaluation: K env workers, one batched policy call per round, results on disk.
+"""Closed-loop evaluation: K env workers, batched policy calls, results on disk.
 
-Each round, every env that has used up its action chunk sends its last ``n_obs_steps``
-observations; the policy answers all of them in one ``predict_chunks`` call, and each worker
-executes its chunk (``n_action_steps`` actions) before the next round. An episode's outcome
-depends only on its seed, the policy and the task: episodes start from their seed, the
-policy's per-episode state is per slot and seeded by the episode seed, and the lerobot adapter
-keeps batched inference bitwise independent of which envs share a batch.
+An env that has used up its action chunk sends its last ``n_obs_steps`` observations and waits;
+as soon as the policy's batch is full (or no other env can still ask), one ``predict_chunks``
+call answers the waiting envs and each worker executes its chunk (``n_action_steps`` actions).
+With more envs than rows per forward, the others step and render while the policy runs.
+An episode's outcome depends only on its seed, the policy and the task: episodes start from
+their seed, the policy's per-episode state is per slot and seeded by the episode seed, and the
+lerobot adapter keeps batched inference bitwise independent of which envs share a batch.
 """
 
 from __future__ import annotations
@@ -195,6 +196,9 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
     n_run = 0
     pool = EnvPool(min(n_envs, len(todo)), cfg, timeout_s=worker_timeout_s)
     slots = [_Slot() for _ in range(pool.size)]
+    # Rows per policy forward: the policy's own batch size (LeRobotPolicy pads to it), else all.
+    batch = max(1, int(getattr(policy, "batch_size", 0) or pool.size))
+    waiting: deque[int] = deque()  # slots that need a chunk, in the order they asked
 
     def fail(i: int, why: str) -> None:
         s = slots[i]
@@ -243,6 +247,22 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                 new = new * info.n_obs_steps
             s.history = deque([*s.history, *new], maxlen=info.n_obs_steps)
             s.needs_chunk = True
+            waiting.append(i)
+
+    def forward(ready: list[int]) -> None:
+        requests = [ChunkRequest(i, slots[i].seed, list(slots[i].history)) for i in ready]
+        t0 = time.perf_counter()
+        actions = np.asarray(policy.predict_chunks(requests), dtype=np.float32)
+        share = (time.perf_counter() - t0) / len(ready)
+        want = (len(ready), info.n_action_steps, 6)
+        if actions.shape != want:
+            raise RuntimeError(f"policy {info.name!r} returned actions of shape "
+                               f"{actions.shape}; expected {want} (requests, "
+                               "n_action_steps, joints)")
+        for j, i in enumerate(ready):
+            slots[i].needs_chunk = False
+            slots[i].policy_s += share
+            pool.send(i, ("act", actions[j]))
 
     try:
         while todo or any(s.seed is not None for s in slots):
@@ -255,24 +275,12 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                                      video=str(video) if video else None)
                     policy.start_episode(i, seed)
                     pool.send(i, ("reset", seed, slots[i].video))
-            handle(pool.collect())
-            ready = [i for i, s in enumerate(slots) if s.needs_chunk]
-            if not ready:
+            # A forward as soon as it is full (or nothing else can arrive): with more envs than
+            # rows per forward, the other envs step and render while the policy runs.
+            if len(waiting) >= batch or (waiting and not pool.busy):
+                forward([waiting.popleft() for _ in range(min(batch, len(waiting)))])
                 continue
-            requests = [ChunkRequest(i, slots[i].seed, list(slots[i].history)) for i in ready]
-            t0 = time.perf_counter()
-            actions = np.asarray(policy.predict_chunks(requests), dtype=np.float32)
-            share = (time.perf_counter() - t0) / len(ready)
-            want = (len(ready), info.n_action_steps, 6)
-            if actions.shape != want:
-                raise RuntimeError(f"policy {info.name!r} returned actions of shape "
-                                   f"{actions.shape}; expected {want} (requests, "
-                                   "n_action_steps, joints)")
-            for j, i in enumerate(ready):
-                slots[i].needs_chunk = False
-                slots[i].policy_s += share
-                pool.send(i, ("act", actions[j]))
-            handle(pool.collect())
+            handle(pool.collect(wait_all=False))
     finally:
         pool.close()
         bar.close()

@@ -209,14 +209,20 @@ class EnvPool:
         with contextlib.suppress(BrokenPipeError, OSError):  # gone: collect() reports it
             self._conns[i].send(msg)
 
-    def collect(self) -> dict[int, dict[str, Any] | str | WorkerDied]:
-        """Wait for a reply from every worker that was sent a command.
+    @property
+    def busy(self) -> int:
+        """Workers that were sent a command and have not answered yet."""
+        return len(self._sent_at)
+
+    def collect(self, wait_all: bool = True) -> dict[int, dict[str, Any] | str | WorkerDied]:
+        """Wait for a reply from every worker that was sent a command (``wait_all=False``:
+        return as soon as at least one has answered or died).
 
         Returns, per worker: the reply dict, an error string (the command raised in the worker;
         the worker is still usable), or ``WorkerDied`` (the worker was restarted).
         """
         out: dict[int, dict[str, Any] | str | WorkerDied] = {}
-        while self._sent_at:
+        while self._sent_at and (wait_all or not out):
             by_handle: dict[Any, int] = {}
             for i in self._sent_at:
                 by_handle[self._conns[i]] = i
