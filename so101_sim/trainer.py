@@ -209,6 +209,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                    update_after_step=ts.ema_update_after_step, use_ema_warmup=True,
                    inv_gamma=ts.ema_inv_gamma, power=ts.ema_power)
     step, wall_before = 0, 0.0
+    precision_history = [[0, precision]]  # [first step, precision] per stretch of the run
     log_path = out / "train_log.jsonl"
     if existing and resume:
         state = torch.load(existing[-1] / "training_state.pt", weights_only=False)
@@ -222,20 +223,16 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
         torch.set_rng_state(state["torch_rng"])
         rng.bit_generator.state = state["numpy_rng"]
         step, wall_before = state["step"], state["wall_s"]
-        before = state.get("precision", "fp32")
-        if before != precision:
-            print(f"so101-sim train: precision changed {before} -> {precision} at step "
-                  f"{state['step']}; the log and so101_sim_train.json record both")
-            precision_history = [*state.get("precision_history", [[0, before]]),
-                                 [state["step"], precision]]
-        else:
-            precision_history = state.get("precision_history", [[0, before]])
+        history = state.get("precision_history", [[0, state.get("precision", "fp32")]])
+        if history[-1][1] != precision:
+            print(f"so101-sim train: precision changed {history[-1][1]} -> {precision} at step "
+                  f"{step}; so101_sim_train.json and the model card record both")
+            history = [*history, [step, precision]]
+        precision_history = history
         if state["steps"] != steps:
             print(f"so101-sim train: total steps changed {state['steps']} -> {steps}; the cosine "
                   "schedule is stretched from here on")
         _truncate_log(log_path, step)
-    if not (existing and resume):
-        precision_history = [[0, precision]]
     start_step = step
     out.mkdir(parents=True, exist_ok=True)
     demos = load_demos(dataset, preset, out / "frame_cache")
@@ -267,7 +264,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                     "scheduler": scheduler.state_dict(), "ema": ema.state_dict(),
                     "torch_rng": torch.get_rng_state(), "numpy_rng": rng.bit_generator.state,
                     "step": at_step, "steps": steps, "wall_s": wall, "preset": preset.name,
-                    "precision": precision, "precision_history": precision_history,
+                    "precision_history": precision_history,
                     "dataset": str(Path(dataset_dir).resolve())}, ck / "training_state.tmp")
         (ck / "training_state.tmp").replace(ck / "training_state.pt")
         for old_ck in _checkpoints(out)[:-keep_checkpoints]:

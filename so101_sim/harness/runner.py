@@ -81,7 +81,6 @@ class _Slot:
     episode_ix: int = 0
     video: str | None = None
     history: deque = field(default_factory=deque)
-    needs_chunk: bool = False
     t0: float = 0.0
     steps: int = 0
     rewards: list[float] = field(default_factory=list)
@@ -246,7 +245,6 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
             if not s.history:  # episode start: repeat the first observation To times
                 new = new * info.n_obs_steps
             s.history = deque([*s.history, *new], maxlen=info.n_obs_steps)
-            s.needs_chunk = True
             waiting.append(i)
 
     def forward(ready: list[int]) -> None:
@@ -260,7 +258,6 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                                f"{actions.shape}; expected {want} (requests, "
                                "n_action_steps, joints)")
         for j, i in enumerate(ready):
-            slots[i].needs_chunk = False
             slots[i].policy_s += share
             pool.send(i, ("act", actions[j]))
 
