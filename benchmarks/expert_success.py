@@ -1,6 +1,10 @@
 """Scripted-expert success rate over consecutive seeds, with its 95% Wilson interval.
 
     .venv/bin/python benchmarks/expert_success.py --seeds 500 [--seed-start 0]
+    .venv/bin/python benchmarks/expert_success.py --seeds 200 --dart-noise 3 --recover
+
+`--dart-noise` and `--recover` run the expert as `so101-sim record` would with those flags
+(the same `run_episode`); the retries it started are counted by reason.
 
 State observations only (no rendering): success is the env's own info["is_success"].
 """
@@ -15,6 +19,7 @@ from tqdm import tqdm
 
 from so101_sim.env import PickPlaceEnv
 from so101_sim.expert import ScriptedExpert
+from so101_sim.recording import run_episode
 from so101_sim.stats import wilson_interval
 
 
@@ -23,21 +28,22 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=500)
     parser.add_argument("--seed-start", type=int, default=0)
     parser.add_argument("--task", default="pick_place")
+    parser.add_argument("--dart-noise", type=float, default=0.0)
+    parser.add_argument("--recover", action="store_true", help="expert retries failed attempts")
     args = parser.parse_args()
 
     env = PickPlaceEnv(task=args.task, obs_type="state")
-    expert = ScriptedExpert(args.task)
+    expert = ScriptedExpert(args.task, recover=args.recover)
     modes: collections.Counter[str] = collections.Counter()
+    retries: collections.Counter[str] = collections.Counter()
+    recovered = 0
     failed: list[tuple[int, str]] = []
     t0 = time.perf_counter()
     for seed in tqdm(range(args.seed_start, args.seed_start + args.seeds), unit="episode"):
-        obs, _ = env.reset(seed=seed)
-        expert.reset(seed)
-        while True:
-            obs, _, terminated, truncated, info = env.step(expert.select_action(obs))
-            if terminated or truncated:
-                break
-        mode = info["failure_mode"] or "success"
+        success, mode, _ = run_episode(env, expert, seed, lambda frame: None, args.dart_noise)
+        mode = "success" if success else mode
+        retries.update(expert.retry_log)
+        recovered += bool(success and expert.retries)
         modes[mode] += 1
         if mode != "success":
             failed.append((seed, mode))
@@ -47,6 +53,8 @@ def main() -> None:
           f"{100 * hi:.2f}]) seeds {args.seed_start}..{args.seed_start + n - 1}, "
           f"{time.perf_counter() - t0:.1f} s")
     print("outcomes:", dict(modes))
+    if args.recover:
+        print(f"retries started: {dict(retries)}; successes after a retry: {recovered}")
     if failed:
         print("failed seeds:", failed)
 

@@ -36,7 +36,8 @@ def _record(args: argparse.Namespace) -> int:
         s = record(Path(args.out), args.episodes, task=args.task, seed_start=args.seed_start,
                    image_size=args.image_size, keep_failures=args.keep_failures,
                    resume=args.resume, workers=args.workers, dart_noise=args.dart_noise,
-                   vcodec=args.vcodec)
+                   vcodec=args.vcodec, recover=args.recover,
+                   grasp_clearance=args.grasp_clearance)
     except KeyboardInterrupt:
         print(f"so101-sim record: interrupted; {args.out} holds every completed episode "
               "(continue with --resume)", file=sys.stderr)
@@ -65,7 +66,8 @@ def _train(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     try:
         r = train(Path(args.dataset), Path(args.out), preset_name=args.preset, steps=args.steps,
-                  batch_size=args.batch_size, resume=args.resume, precision=args.precision)
+                  batch_size=args.batch_size, resume=args.resume, precision=args.precision,
+                  device=args.device)
     except (TrainError, PresetError) as e:
         print(f"so101-sim train: {e}", file=sys.stderr)
         return 2
@@ -84,7 +86,15 @@ def _eval(args: argparse.Namespace) -> int:
                                  ("num_inference_steps", args.inference_steps),
                                  ("noise_scheduler", args.noise_scheduler),
                                  ("batch_size", args.policy_batch)) if v is not None}
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
     try:
+        if args.device != "cpu" and args.policy != "expert" and ":" not in args.policy:
+            from so101_sim.devices import resolve_device
+
+            options["device"] = resolve_device(args.device)
         policy = load_policy(args.policy, task=args.task, **options)
         evaluate(policy, task=args.task, episodes=args.episodes, n_envs=args.n_envs,
                  seed_start=args.seed_start, out_dir=args.out, videos=args.videos,
@@ -94,6 +104,20 @@ def _eval(args: argparse.Namespace) -> int:
         print("so101-sim eval: interrupted; every finished episode is in episodes.jsonl "
               "(finish with the same arguments plus --resume)", file=sys.stderr)
         return 130
+    return 0
+
+
+def _curve(args: argparse.Namespace) -> int:
+    from so101_sim.harness.curve import evaluate_curve, plot_curve
+
+    run = Path(args.run)
+    rows = evaluate_curve(run, episodes=args.episodes, every=args.every, n_envs=args.n_envs,
+                          seed_start=args.seed_start)
+    for r in rows:
+        print(f"step {r['step']:>7} ({r['train_hours']:.2f} h): {r['successes']}/"
+              f"{r['episodes']} = {100 * r['success']:.1f}% (95% CI {100 * r['ci95'][0]:.1f}-"
+              f"{100 * r['ci95'][1]:.1f})")
+    print(f"plot: {plot_curve(rows, run / 'eval_curve.png')}")
     return 0
 
 
@@ -145,6 +169,14 @@ def build_parser() -> argparse.ArgumentParser:
                      help="DART noise: execute the expert's action plus Gaussian noise of this "
                           "std (degrees; gripper 0..100 units) while `action` keeps the clean "
                           "label; executed actions go to `action_executed` (default 0: off)")
+    rec.add_argument("--recover", action="store_true",
+                     help="the expert watches the cube and retries a missed grasp, a dropped "
+                          "cube or a cube left off the target (recoveries in the demos; use "
+                          "with --dart-noise so some first attempts fail)")
+    rec.add_argument("--grasp-clearance", type=float, default=None, metavar="M",
+                     help="gap (m) between the fixed finger pad and the cube when the expert "
+                          "grasps (default 0.004; 0.012 centres the cube in the open gripper "
+                          "and tolerates ~2x the position error)")
     rec.add_argument("--vcodec", choices=["h264", "libsvtav1"], default=None,
                      help="video codec of a new dataset (default h264: about half the CPU of "
                           "AV1 per frame; a resumed dataset keeps its own)")
@@ -169,10 +201,23 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--threads", type=int, default=None,
                     help="torch CPU threads (default: all cores); use 1 when other jobs share "
                          "the cores: oversubscribed thread pools are several times slower")
-    tr.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
-                    help="bf16: autocast matmuls/convs to bfloat16 on CPU (1.45x faster per step "
-                         "on AMX/AVX512-BF16 CPUs; weights, optimiser and EMA stay fp32)")
+    tr.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+                    help="bf16: autocast matmuls/convs to bfloat16 (1.45x faster per step on "
+                         "AMX/AVX512-BF16 CPUs; weights, optimiser and EMA stay fp32); auto "
+                         "(default): bf16 where the device has fast bf16, else fp32")
+    tr.add_argument("--device", choices=("auto", "cpu", "cuda", "mps"), default="auto",
+                    help="auto (default): cuda, then mps, then cpu")
     tr.set_defaults(func=_train)
+
+    cu = sub.add_parser("curve", help="evaluate a training run's saved checkpoints on the same "
+                                      "evaluation seeds: success against step and hours")
+    cu.add_argument("run", help="the --out folder of `so101-sim train`")
+    cu.add_argument("--episodes", type=int, default=32, help="seeds per checkpoint")
+    cu.add_argument("--every", type=int, default=0,
+                    help="only checkpoints whose step is a multiple of this (default: all)")
+    cu.add_argument("--n-envs", type=int, default=8)
+    cu.add_argument("--seed-start", type=int, default=100_000)
+    cu.set_defaults(func=_curve)
 
     ex = sub.add_parser("export", help="copy a trained checkpoint to a shippable folder: fp16 "
                                        "weights and a model card with harness numbers")
@@ -215,6 +260,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="diffusion denoising steps (default: the checkpoint's)")
     ev.add_argument("--noise-scheduler", choices=["DDIM", "DDPM"], default=None,
                     help="diffusion sampler (default: the checkpoint's)")
+    ev.add_argument("--threads", type=int, default=None,
+                    help="torch CPU threads for the policy's forwards (default: torch's own)")
+    ev.add_argument("--device", choices=("auto", "cpu", "cuda", "mps"), default="auto",
+                    help="where policy forwards run (default auto: cuda, then mps, then cpu); "
+                         "envs always run on CPU workers")
     ev.add_argument("--policy-batch", type=int, default=None,
                     help="rows per policy forward, padded (default 8; 1 = one env per forward)")
     ev.set_defaults(func=_eval)
@@ -225,6 +275,11 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
+    except PermissionError as exc:
+        print(f"so101-sim {args.command}: error: cannot write or read {exc.filename}: "
+              "permission denied; choose a folder you own (e.g. under your home) for --out",
+              file=sys.stderr)
+        return 2
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"so101-sim {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -7,11 +7,12 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import gymnasium as gym
-import mujoco
 import numpy as np
 from gymnasium import spaces
 
+from so101_sim.glcheck import mujoco
 from so101_sim.rendering import MultiCameraRenderer
+from so101_sim.reset_options import Workspace, apply_reset_options, workspace
 from so101_sim.scene import build_model, mesh_grid_for
 from so101_sim.task import TaskSpec, load_task
 from so101_sim.units import MOTOR_NAMES, lerobot_to_radians, radians_to_lerobot
@@ -22,6 +23,16 @@ FAILURE_MODES = ("never_grasped", "dropped", "misplaced", "timeout", "sim_unstab
 ENV_STATE_SIZE = 10  # cube position (3) + cube quaternion wxyz (4) + target position (3)
 _MAX_JOINT_SPEED = 50.0  # rad/s: far beyond the servos (~7 rad/s); only a diverging sim gets here
 _MAX_CUBE_SPEED = 20.0  # m/s
+
+
+# MuJoCo's own "the simulation blew up" warnings: bad qpos/qvel/qacc (it then resets the state
+# itself) and bad ctrl.
+_INSTABILITY_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL,
+                         mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_BADCTRL)
+
+
+def _instability_count(d: mujoco.MjData) -> int:
+    return sum(int(d.warning[w].number) for w in _INSTABILITY_WARNINGS)
 
 
 class PickPlaceEnv(gym.Env):
@@ -105,6 +116,7 @@ class PickPlaceEnv(gym.Env):
         self._step_count = 0
         self._clipped_total = 0
         self._tracker = _OutcomeTracker()
+        self._workspace: Workspace | None = None  # table/base bounds for reset options
         self.time_physics = 0.0
         self.time_render = 0.0
 
@@ -177,21 +189,16 @@ class PickPlaceEnv(gym.Env):
               options: dict[str, Any] | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
         super().reset(seed=seed)
         task, m, d, ids, rng = self.task, self.model, self.data, self._ids, self.np_random
-        options = options or {}
-        unknown = set(options) - {"cube_pose", "target_pos"}
-        if unknown:
-            raise ValueError(f"unknown reset options {sorted(unknown)}; expected 'cube_pose' "
-                             "(x, y, yaw_deg) and/or 'target_pos' (x, y)")
         # Draw every random number in a fixed order, whatever the options, so episodes depend
         # only on the seed.
         noise = rng.uniform(-task.rest_noise, task.rest_noise, size=6)
         cube = np.array([rng.uniform(*task.cube_x), rng.uniform(*task.cube_y),
                          rng.uniform(*task.cube_yaw)])
         target = np.array([rng.uniform(*task.target_x), rng.uniform(*task.target_y)])
-        if "cube_pose" in options:
-            cube = np.asarray(options["cube_pose"], dtype=np.float64).reshape(3)
-        if "target_pos" in options:
-            target = np.asarray(options["target_pos"], dtype=np.float64).reshape(2)
+        if self._workspace is None:
+            self._workspace = workspace(m)
+        cube, target = apply_reset_options(options, self._workspace, task.cube_size, cube,
+                                           target)
 
         mujoco.mj_resetData(m, d)
         rest = np.clip(np.asarray(task.rest_pose) + noise, self.action_low, self.action_high)
@@ -241,10 +248,9 @@ class PickPlaceEnv(gym.Env):
         m, d = self.model, self.data
         t0 = time.perf_counter()
         d.ctrl[:] = lerobot_to_radians(clipped)
-        bad_before = d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number
+        bad_before = _instability_count(d)
         mujoco.mj_step(m, d, nstep=self.task.physics_substeps)
-        unstable = (d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > bad_before
-                    or not self._state_is_sane())
+        unstable = _instability_count(d) > bad_before or not self._state_is_sane()
         self.time_physics += time.perf_counter() - t0
         self._frame = None
         self._step_count += 1

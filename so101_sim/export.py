@@ -11,7 +11,9 @@ import json
 import shutil
 from pathlib import Path
 
+from so101_sim.harness.curve import plot_curve, read_curve
 from so101_sim.trainer import TRAIN_INFO
+from so101_sim.trust import check_processor_files
 
 
 def _fp16_copy(src: Path, dst: Path) -> None:
@@ -22,8 +24,14 @@ def _fp16_copy(src: Path, dst: Path) -> None:
               metadata={"format": "pt", "so101_sim": "stored fp16; loads into fp32"})
 
 
-def _curve(log: Path, points: int = 8) -> list[dict]:
-    rows = [json.loads(x) for x in log.read_text().splitlines() if x.strip()]
+def loss_curve(log: Path, points: int = 8) -> list[dict]:
+    rows = []
+    for n, line in enumerate(log.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            if line.strip():
+                print(f"so101-sim export: {log}: skipped unreadable line {n}")
     if not rows:
         return []
     pick = sorted({round(i * (len(rows) - 1) / (points - 1)) for i in range(points)})
@@ -50,8 +58,34 @@ def _eval_rows(eval_info: dict, label: str) -> list[str]:
             f"{modes or 'n/a'}; images: {cfg.get('images', 'n/a')} |"]
 
 
+def _recording_note(dataset: str) -> str:
+    """How the demos were recorded (DART noise, expert options), from the dataset sidecar."""
+    side = Path(dataset).expanduser() / "so101_sim_recording.json"
+    if not side.is_file():
+        return ""
+    s = json.loads(side.read_text())
+    parts = [f"DART noise {s['dart_noise']:g}" if s.get("dart_noise") else "no DART noise"]
+    expert = s.get("expert") or {}
+    if expert.get("recover"):
+        parts.append("recovering expert (retries)")
+    if "clearance" in expert:
+        parts.append(f"grasp clearance {expert['clearance']:g} m")
+    return "; " + ", ".join(parts)
+
+
+def _success_rows(rows: list[dict]) -> list[str]:
+    lines = ["", "Closed-loop success along training (`so101-sim curve`, each checkpoint on "
+             f"the same {rows[-1]['episodes']} evaluation seeds from {rows[-1]['seed_start']}):",
+             "", "![success against training](curve.png)", "",
+             "| step | training hours | success | 95% Wilson |", "|---|---|---|---|"]
+    lines += [f"| {r['step']} | {r['train_hours']:.2f} | {r['successes']}/{r['episodes']} | "
+              f"{100 * r['ci95'][0]:.1f}-{100 * r['ci95'][1]:.1f}% |" for r in rows]
+    return lines
+
+
 def model_card(train_info: dict, eval_info: dict | None, curve: list[dict],
-               hardware: str, also: list[dict] | None = None) -> str:
+               hardware: str, also: list[dict] | None = None,
+               success_curve: list[dict] | None = None) -> str:
     """Markdown model card from the training sidecar, the loss curve and a harness result."""
     t = train_info
     lines = [
@@ -62,7 +96,7 @@ def model_card(train_info: dict, eval_info: dict | None, curve: list[dict],
         f"| preset | `{t['preset']}` (policy/presets/{t['preset']}.toml) |",
         f"| data | {t['dataset_episodes']} expert episodes, {t['dataset_frames']} frames, "
         f"recorded at {t['dataset_image_size'][0]}x{t['dataset_image_size'][1]}, "
-        "training seeds |",
+        f"training seeds{_recording_note(t['dataset'])} |",
         f"| policy input | 2 cameras resized to {t['policy_image_size'][0]}x"
         f"{t['policy_image_size'][1]} by {t['image_pipeline']} |",
         f"| steps | {t['step']} of {t['total_steps']} planned, batch {t['batch_size']} |",
@@ -81,6 +115,8 @@ def model_card(train_info: dict, eval_info: dict | None, curve: list[dict],
                   "| step | loss | lr | samples/s |", "|---|---|---|---|"]
         lines += [f"| {r['step']} | {r['loss']:.4f} | {r['lr']:.2e} | {r['samples_per_s']} |"
                   for r in curve]
+    if success_curve:
+        lines += _success_rows(success_curve)
     lines += ["", "Evaluate: `so101-sim eval --policy policy/pick_place_diffusion --episodes 100`",
               ""]
     return "\n".join(lines)
@@ -96,6 +132,7 @@ def export_policy(checkpoint: Path, dest: Path, eval_dir: Path | None = None,
         raise FileNotFoundError(f"{checkpoint} is not a so101-sim checkpoint (needs "
                                 f"model.safetensors and {TRAIN_INFO}); pass a "
                                 "checkpoints/step_*/pretrained_model folder")
+    check_processor_files(checkpoint)  # never ship a file that would run code when loaded
     tmp = dest.with_name(dest.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(checkpoint, tmp, ignore=shutil.ignore_patterns("model.safetensors"))
@@ -106,10 +143,15 @@ def export_policy(checkpoint: Path, dest: Path, eval_dir: Path | None = None,
         eval_info = json.loads((Path(eval_dir) / "eval_info.json").read_text())
         shutil.copy(Path(eval_dir) / "eval_info.json", tmp / "eval_info.json")
     log = checkpoint.parents[2] / "train_log.jsonl"
-    curve = _curve(log) if log.is_file() else []
+    curve = loss_curve(log) if log.is_file() else []
     curve = [r for r in curve if r["step"] <= info["step"]]
     also = [json.loads((Path(d) / "eval_info.json").read_text()) for d in also_eval or []]
-    (tmp / "README.md").write_text(model_card(info, eval_info, curve, hardware, also))
+    run = checkpoint.parents[2]
+    success_curve = [r for r in read_curve(run) if r["step"] <= info["step"]]
+    if success_curve:
+        plot_curve(success_curve, tmp / "curve.png")
+    (tmp / "README.md").write_text(model_card(info, eval_info, curve, hardware, also,
+                                              success_curve))
     shutil.rmtree(dest, ignore_errors=True)
     tmp.rename(dest)
     return dest

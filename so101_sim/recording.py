@@ -103,6 +103,22 @@ def check_dart_noise(dart_noise: float) -> float:
     return x
 
 
+def expert_options(recover: bool = False, grasp_clearance: float | None = None
+                   ) -> dict[str, Any]:
+    """ScriptedExpert keyword options as stored in the sidecar (defaults left out)."""
+    options: dict[str, Any] = {}
+    if recover:
+        options["recover"] = True
+    if grasp_clearance is not None:
+        c = float(grasp_clearance)
+        if not (math.isfinite(c) and 0.0 <= c <= 0.02):
+            raise ValueError(f"grasp_clearance={grasp_clearance!r} is invalid; expected metres "
+                             "in [0, 0.02] (the open gripper leaves ~0.025 m around the cube); "
+                             "e.g. --grasp-clearance 0.012")
+        options["clearance"] = c
+    return options
+
+
 def _check_args(n_episodes: int, workers: int, seed_start: int, vcodec: str | None) -> None:
     if n_episodes < 1:
         raise ValueError(f"n_episodes={n_episodes}; expected >= 1")
@@ -306,7 +322,7 @@ def _codec_of(features: dict[str, Any]) -> str | None:
 
 
 def _resume_settings(root: Path, image_size: tuple[int, int], dart_noise: float,
-                     vcodec: str | None) -> tuple[dict[str, Any], str]:
+                     vcodec: str | None, expert: dict[str, Any]) -> tuple[dict[str, Any], str]:
     """Sidecar of the dataset being resumed, and its codec; refuses a mismatch of settings."""
     side = _read_sidecar(root)
     if not (root / "meta" / "info.json").exists():
@@ -320,6 +336,10 @@ def _resume_settings(root: Path, image_size: tuple[int, int], dart_noise: float,
         raise ValueError(f"{root} was recorded with --dart-noise {old_noise:g}, not "
                          f"{dart_noise:g}; resume with --dart-noise {old_noise:g} (a dataset "
                          "holds one noise level)")
+    old_expert = side.get("expert", {})
+    if old_expert != expert:
+        raise ValueError(f"{root} was recorded with expert options {old_expert}, not {expert}; "
+                         "resume with the same --recover / --grasp-clearance")
     codec = side.get("vcodec") or _codec_of(features) or vcodec or DEFAULT_VCODEC
     if vcodec is not None and vcodec != codec:
         raise ValueError(f"{root} holds {codec} videos; resume with --vcodec {codec} or "
@@ -347,7 +367,8 @@ class _Opened:
 
 def _open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
                   image_size: tuple[int, int], seed_start: int, dart_noise: float,
-                  vcodec: str | None, queue_size: int, streaming_encoding: bool) -> _Opened:
+                  vcodec: str | None, queue_size: int, streaming_encoding: bool,
+                  expert: dict[str, Any]) -> _Opened:
     """Create the dataset, or reopen it for appending; write the sidecar."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -360,7 +381,7 @@ def _open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
     writer_kwargs = {"streaming_encoding": streaming_encoding, "encoder_threads": 1,
                      "encoder_queue_maxsize": queue_size}
     if resume and exists:
-        side, codec = _resume_settings(root, image_size, dart_noise, vcodec)
+        side, codec = _resume_settings(root, image_size, dart_noise, vcodec, expert)
         tried = [int(s) for s in side.get("tried", [])] + stored_seeds(root)
         repo_id = side.get("repo_id", repo_id)
         task_arg = side.get("task", task_arg)
@@ -379,7 +400,7 @@ def _open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
         tried, failures, next_seed = [], {}, seed_start
     side = {"repo_id": repo_id, "task": task_arg, "image_size": list(image_size),
             "dart_noise": dart_noise, "vcodec": codec, "tried": sorted(set(tried)),
-            "failures": failures}
+            "failures": failures, "expert": expert}
     _write_sidecar(root, side)
     return _Opened(ds, side, next_seed, dataclasses.asdict(encoder))
 
@@ -404,7 +425,8 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path = "pick_place"
            keep_failures: bool = False, resume: bool = False, workers: int = 1,
            repo_id: str = DEFAULT_REPO_ID, progress: bool = True,
            streaming_encoding: bool = True, dart_noise: float = 0.0,
-           vcodec: str | None = None) -> dict[str, Any]:
+           vcodec: str | None = None, recover: bool = False,
+           grasp_clearance: float | None = None) -> dict[str, Any]:
     """Record `n_episodes` expert episodes (only successes unless `keep_failures`) to `out_dir`.
 
     Seeds run upward from `seed_start` (or, with `resume`, from after the largest seed already
@@ -413,7 +435,9 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path = "pick_place"
     Ctrl-C / SIGTERM, so an interrupted run loads with every completed episode. `vcodec` is
     ``"h264"`` (default for new datasets) or ``"libsvtav1"``; a resumed dataset keeps its own.
     `workers` > 1 records in that many processes (see the module docstring); `dart_noise` is
-    the std of the noise added to executed actions (``run_episode``), 0 for none. Returns a
+    the std of the noise added to executed actions (``run_episode``), 0 for none; `recover`
+    and `grasp_clearance` are ScriptedExpert options (retries; gap between the fixed pad and
+    the cube at the grasp, metres), stored with the dataset. Returns a
     summary dict (episodes, successes, tried, env_steps, steps_per_s, seconds, and the
     time_physics / time_render / cpu_seconds spent by all recording processes).
     """
@@ -421,7 +445,11 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path = "pick_place"
 
     _check_args(n_episodes, workers, seed_start, vcodec)
     dart_noise = check_dart_noise(dart_noise)
+    expert = expert_options(recover, grasp_clearance)
     _quiet_libav()
+    from so101_sim.rendering import select_gl_backend
+
+    select_gl_backend()  # choose (and print) once here: worker processes inherit MUJOCO_GL
     root = Path(out_dir)
     image_size = (int(image_size[0]), int(image_size[1]))
     task_arg = _task_arg(task, root, resume)
@@ -430,7 +458,7 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path = "pick_place"
         raise ValueError(f"task fps is {spec.fps}; the dataset is recorded at 30 fps")
     opened = _open_dataset(root, resume, repo_id, task_arg, image_size,
                            seed_start, dart_noise, vcodec, spec.max_steps + 2,
-                           streaming_encoding or workers > 1)
+                           streaming_encoding or workers > 1, expert)
     tally = _Tally(root, opened.side, opened.ds.meta.total_episodes, n_episodes, progress)
     if workers == 1:
         _record_here(opened, tally, keep_failures, image_size)
@@ -450,7 +478,7 @@ def _record_here(opened: _Opened, tally: _Tally, keep_failures: bool,
     ds, side = opened.ds, opened.side
     env = PickPlaceEnv(task=side["task"], obs_type="pixels_agent_pos_env_state",
                        image_size=image_size)
-    expert = ScriptedExpert(env.task)
+    expert = ScriptedExpert(env.task, **side["expert"])
     next_seed, cpu0 = opened.next_seed, time.process_time()
     interrupts = _Interrupts()
     interrupts.install()

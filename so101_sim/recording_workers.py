@@ -39,6 +39,7 @@ class _WorkerSpec:
     task: str
     image_size: tuple[int, int]
     dart_noise: float
+    expert: dict[str, Any]
     keep_failures: bool
     encoder_kwargs: dict[str, Any]
     queue_size: int
@@ -156,7 +157,7 @@ def _worker_main(spec: _WorkerSpec, tasks: Any, results: Any) -> None:
     try:
         env = PickPlaceEnv(task=spec.task, obs_type="pixels_agent_pos_env_state",
                            image_size=spec.image_size)
-        expert = ScriptedExpert(env.task)
+        expert = ScriptedExpert(env.task, **spec.expert)
         encoder = StreamingVideoEncoder(fps=env.task.fps, queue_maxsize=spec.queue_size,
                                         rgb_encoder=RGBEncoderConfig(**spec.encoder_kwargs),
                                         encoder_threads=1)
@@ -272,7 +273,7 @@ def record_with_workers(opened: _Opened, tally: _Tally, keep_failures: bool,
     temp_dir = root / WORKER_TMP
     shutil.rmtree(temp_dir, ignore_errors=True)  # leftovers of a killed run
     temp_dir.mkdir()
-    spec = _WorkerSpec(side["task"], image_size, side["dart_noise"], keep_failures,
+    spec = _WorkerSpec(side["task"], image_size, side["dart_noise"], side["expert"], keep_failures,
                        opened.encoder_kwargs, task.max_steps + 2, str(temp_dir))
     description = task.description
     blank = np.zeros((*image_size, 3), dtype=np.uint8)

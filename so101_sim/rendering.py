@@ -10,7 +10,6 @@ from __future__ import annotations
 import atexit
 import contextlib
 import os
-import subprocess
 import sys
 import weakref
 from collections.abc import Sequence
@@ -18,26 +17,7 @@ from collections.abc import Sequence
 import mujoco
 import numpy as np
 
-_BACKENDS = ("egl", "osmesa")
-_PROBE = (
-    "import os, sys; os.environ['PYOPENGL_PLATFORM'] = sys.argv[1]\n"
-    "mod = __import__('mujoco.' + sys.argv[1], fromlist=['GLContext'])\n"
-    "ctx = mod.GLContext(8, 8); ctx.make_current(); ctx.free()\n"
-)
-
-
-def _probe_backend(backend: str) -> str | None:
-    """Try to open a GL context with `backend` in a child process; None if it works."""
-    env = {**os.environ, "MUJOCO_GL": backend, "PYOPENGL_PLATFORM": backend}
-    try:
-        proc = subprocess.run([sys.executable, "-c", _PROBE, backend], env=env, timeout=60,
-                              capture_output=True, text=True)
-    except subprocess.TimeoutExpired:
-        return "timed out"
-    if proc.returncode == 0:
-        return None
-    lines = (proc.stderr or proc.stdout).strip().splitlines()
-    return lines[-1] if lines else f"exit code {proc.returncode}"
+from so101_sim.rendering_probe import BACKENDS, probe_backend
 
 
 def select_gl_backend() -> str:
@@ -48,13 +28,13 @@ def select_gl_backend() -> str:
     """
     chosen = os.environ.get("MUJOCO_GL", "").strip().lower()
     if chosen:
-        if chosen not in (*_BACKENDS, "glfw"):
+        if chosen not in (*BACKENDS, "glfw"):
             raise RuntimeError(f"MUJOCO_GL={chosen!r} is not supported by so101_sim; expected "
                                "'egl' or 'osmesa' (headless) or 'glfw' (needs a display)")
         return chosen
     errors = {}
-    for backend in _BACKENDS:
-        err = _probe_backend(backend)
+    for backend in BACKENDS:
+        err = probe_backend(backend)
         if err is None:
             os.environ["MUJOCO_GL"] = backend
             os.environ.setdefault("PYOPENGL_PLATFORM", backend)

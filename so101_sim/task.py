@@ -108,6 +108,18 @@ _EXPECTED = {
 }
 
 
+def _limits(spec: TaskSpec) -> list[tuple[str, int, int, str]]:
+    """Upper bounds that keep one step() and one episode finite in time: a typo such as
+    physics_substeps = 100000000 would otherwise hang the first step for hours."""
+    return [("episode.fps", spec.fps, 1000, "control rate in Hz"),
+            ("episode.physics_substeps", spec.physics_substeps, 1000,
+             "physics steps per control step; 8 gives 240 Hz physics at 30 fps"),
+            ("episode.max_steps", spec.max_steps, 1_000_000,
+             "control steps per episode; 300 is 10 s at 30 fps"),
+            ("success.settle_steps", spec.settle_steps, spec.max_steps,
+             "it must fit in an episode")]
+
+
 def _is_num(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
@@ -159,7 +171,10 @@ def load_task(task: str | Path | TaskSpec = "pick_place") -> TaskSpec:
         return task
     path = resolve_task_path(task)
     try:
-        raw = tomllib.loads(path.read_text())
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise TaskSpecError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason}); save the "
+                            "task file as UTF-8") from None
     except tomllib.TOMLDecodeError as exc:
         raise TaskSpecError(f"{path}: not valid TOML ({exc})") from exc
     return parse_task(raw, source=str(path))
@@ -196,6 +211,10 @@ def parse_task(raw: dict[str, Any], source: str = "<dict>") -> TaskSpec:
                 if fn in required]
         raise TaskSpecError(f"{source}: missing required keys {keys}")
     spec = TaskSpec(**values, source=source)
+    for key, value, limit, why in _limits(spec):
+        if value > limit:
+            raise TaskSpecError(f"{source}: {key} = {value} is too large; expected at most "
+                                f"{limit} ({why})")
     if spec.cube_size < 0.01 or spec.cube_size > 0.05:
         raise TaskSpecError(f"{source}: cube.size = {spec.cube_size} is invalid; expected "
                             "0.01 .. 0.05 m (the gripper opens to about 6 cm)")

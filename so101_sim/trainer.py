@@ -8,6 +8,9 @@ gets saved for evaluation, and `--resume` restores every RNG so a resumed run is
 Run layout under `out/`:
     checkpoints/step_NNNNNNN/pretrained_model/   EMA weights in lerobot's format (+ processors)
     checkpoints/step_NNNNNNN/training_state.pt   raw weights, optimiser, scheduler, EMA, RNGs
+                                                 (tensors and plain values only: it loads
+                                                 with torch.load(weights_only=True), so a
+                                                 crafted file cannot run code on --resume)
     pretrained_model/                            the final EMA policy
     train_log.jsonl                              step, loss, lr, samples/s, EMA decay
     frame_cache/                                 decoded frames (.npy)
@@ -33,19 +36,24 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from so101_sim.devices import resolve_device, resolve_precision
 from so101_sim.frame_cache import load_frames
 from so101_sim.presets import Preset, load_preset, make_config, policy_features
+from so101_sim.train_state import (
+    TrainError,
+    architecture,
+    check_same_architecture,
+    list_checkpoints,
+    load_training_state,
+    truncate_log,
+)
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 TRAIN_INFO = "so101_sim_train.json"
-#: Training precision: fp32, or bf16 autocast on CPU (AMX/AVX512-BF16: 1.45x faster per cpu-preset
-#: step here; weights, optimiser and EMA stay fp32).
-PRECISIONS = ("fp32", "bf16")
-
-
-class TrainError(RuntimeError):
-    """Bad training input (dataset, preset, run folder)."""
+#: Training precision: fp32, or bf16 autocast (CPU with AMX/AVX512-BF16: 1.45x faster per
+#: cpu-preset step here; CUDA); weights, optimiser and EMA stay fp32. "auto": see devices.py.
+PRECISIONS = ("auto", "fp32", "bf16")
 
 
 # ----------------------------------------------------------------------------- data
@@ -144,10 +152,6 @@ def _open_dataset(path: Path):
     return LeRobotDataset(f"local/{path.name}", root=path)
 
 
-def _checkpoints(out: Path) -> list[Path]:
-    return sorted(p.parent for p in (out / "checkpoints").glob("step_*/training_state.pt"))
-
-
 def _save_pretrained(policy, ema, pre, post, dest: Path, info: dict) -> None:
     """EMA weights in lerobot's pretrained format, written atomically."""
     tmp = dest.with_name(dest.name + ".tmp")
@@ -165,8 +169,11 @@ def _save_pretrained(policy, ema, pre, post, dest: Path, info: dict) -> None:
 def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | None = None,
           batch_size: int | None = None, resume: bool = False, keep_checkpoints: int = 3,
           progress: bool = True, log_every: int | None = None,
-          precision: str = "fp32") -> TrainResult:
-    """Train `preset_name` on the dataset at `dataset_dir`; see the module docstring."""
+          precision: str = "fp32", device: str = "cpu") -> TrainResult:
+    """Train `preset_name` on the dataset at `dataset_dir`; see the module docstring.
+
+    `device` is auto|cpu|cuda|mps (`devices.resolve_device`); `precision` fp32|bf16|auto.
+    """
     from diffusers.optimization import get_scheduler
     from diffusers.training_utils import EMAModel
     from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
@@ -179,13 +186,23 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     log_every = int(log_every or ts.log_every)
     if precision not in PRECISIONS:
         raise TrainError(f"precision={precision!r} is invalid; expected one of {PRECISIONS}")
+    try:
+        device = resolve_device(device)
+    except ValueError as e:
+        raise TrainError(str(e)) from None
+    precision = resolve_precision(precision, device)
     if steps < 1 or batch_size < 1:
         raise TrainError(f"--steps {steps} and --batch-size {batch_size} must both be >= 1")
     out = Path(out)
-    existing = _checkpoints(out)
+    existing = list_checkpoints(out)
     if existing and not resume:
         raise TrainError(f"{out} already holds checkpoints (last {existing[-1].name}); pass "
                          "--resume to continue that run or choose another --out")
+    if resume and not existing:
+        what = ("does not exist" if not out.exists()
+                else "holds no checkpoint with a training_state.pt")
+        raise TrainError(f"--resume: {out} {what}, so there is nothing to continue; check --out, "
+                         "or start a new run without --resume")
     dataset = _open_dataset(Path(dataset_dir))
     missing = [k for k in ("observation.state", "action") if k not in dataset.meta.features]
     if missing:
@@ -196,7 +213,9 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     rng = np.random.default_rng(ts.seed)
     cfg = make_config(preset, *policy_features(preset.image_size, cams,
                                                dataset.meta.features["action"]["shape"][0]))
+    cfg.device = device
     policy = DiffusionPolicy(cfg)
+    policy.to(device)
     policy.train()
     pre, post = make_pre_post_processors(cfg, dataset_stats=normalization_stats(dataset, preset))
     optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=cfg.optimizer_lr,
@@ -212,15 +231,24 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     precision_history = [[0, precision]]  # [first step, precision] per stretch of the run
     log_path = out / "train_log.jsonl"
     if existing and resume:
-        state = torch.load(existing[-1] / "training_state.pt", weights_only=False)
+        state = load_training_state(existing[-1] / "training_state.pt", device)
         if state["preset"] != preset.name or state["dataset"] != str(Path(dataset_dir).resolve()):
             raise TrainError(f"{out} was trained with preset {state['preset']!r} on "
                              f"{state['dataset']}; resume it with the same --preset and --dataset")
-        policy.load_state_dict(state["model"])
+        check_same_architecture(state, preset, out)
+        try:
+            policy.load_state_dict(state["model"])
+        except RuntimeError as e:
+            raise TrainError(f"{out}: the checkpoint's weights do not fit preset "
+                             f"{preset.name!r} as it is now ({str(e).splitlines()[0]}); the "
+                             "preset file changed since the run started: resume with the "
+                             "preset file the run was started with") from None
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
         ema.load_state_dict(state["ema"])
-        torch.set_rng_state(state["torch_rng"])
+        torch.set_rng_state(state["torch_rng"].cpu())
+        if device == "cuda" and "cuda_rng" in state:
+            torch.cuda.set_rng_state(state["cuda_rng"].cpu())
         rng.bit_generator.state = state["numpy_rng"]
         step, wall_before = state["step"], state["wall_s"]
         history = state.get("precision_history", [[0, state.get("precision", "fp32")]])
@@ -232,7 +260,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
         if state["steps"] != steps:
             print(f"so101-sim train: total steps changed {state['steps']} -> {steps}; the cosine "
                   "schedule is stretched from here on")
-        _truncate_log(log_path, step)
+        truncate_log(log_path, step)
     start_step = step
     out.mkdir(parents=True, exist_ok=True)
     demos = load_demos(dataset, preset, out / "frame_cache")
@@ -245,6 +273,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             "image_pipeline": "so101_sim.image_pipeline.resize_frames (bilinear, antialias)",
             "weights": "EMA", "batch_size": batch_size,
             "precision": precision, "precision_history": precision_history, "total_steps": steps,
+            "device": device,
             "train_settings": asdict(ts)}
 
     stop = {"signal": None}
@@ -263,11 +292,13 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
         torch.save({"model": policy.state_dict(), "optimizer": optimizer.state_dict(),
                     "scheduler": scheduler.state_dict(), "ema": ema.state_dict(),
                     "torch_rng": torch.get_rng_state(), "numpy_rng": rng.bit_generator.state,
+                    **({"cuda_rng": torch.cuda.get_rng_state()} if device == "cuda" else {}),
                     "step": at_step, "steps": steps, "wall_s": wall, "preset": preset.name,
                     "precision_history": precision_history,
+                    "preset_arch": architecture(preset),
                     "dataset": str(Path(dataset_dir).resolve())}, ck / "training_state.tmp")
         (ck / "training_state.tmp").replace(ck / "training_state.pt")
-        for old_ck in _checkpoints(out)[:-keep_checkpoints]:
+        for old_ck in list_checkpoints(out)[:-keep_checkpoints]:
             (old_ck / "training_state.pt").unlink()  # keep its EMA policy, drop the bulk
         return ck
 
@@ -280,7 +311,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             t_step = time.perf_counter()
             idx = rng.choice(demos.starts, size=batch_size)
             batch = pre(gather_batch(demos, idx, n_obs, horizon))
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16"):
+            with torch.autocast(device, dtype=torch.bfloat16, enabled=precision == "bf16"):
                 loss, _ = policy.forward(batch)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -324,9 +355,3 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                        pretrained_dir=final)
 
 
-def _truncate_log(path: Path, step: int) -> None:
-    """Drop log lines past `step` (written after the checkpoint a resume starts from)."""
-    if not path.is_file():
-        return
-    keep = [ln for ln in path.read_text().splitlines() if ln and json.loads(ln)["step"] <= step]
-    path.write_text("".join(ln + "\n" for ln in keep))

@@ -80,3 +80,36 @@ def test_expert_jitter_varies_demos_per_seed_and_repeats_per_seed(state_env):
     plain = ScriptedExpert(jitter=False)
     plain.reset(1)
     assert plain.hover == 0.06 and plain.carry_height == 0.08
+
+
+def test_recovering_expert_regrasps_a_cube_that_moved(state_env):
+    """The cube is moved after the expert planned: the grasp closes on air, the expert sees
+    the cube did not lift, backs off, plans again from where the cube is, and succeeds."""
+    import mujoco
+
+    obs, _ = state_env.reset(seed=0)
+    expert = ScriptedExpert(recover=True)
+    expert.reset(0)
+    obs, *_ = state_env.step(expert.select_action(obs))  # plans on the first call
+    d = state_env.data
+    adr = state_env.model.jnt_qposadr[state_env.model.joint("cube").id]
+    d.qpos[adr + 1] -= 0.04  # 4 cm: out of the open gripper's reach
+    mujoco.mj_forward(state_env.model, d)
+    while True:
+        obs, _, terminated, truncated, info = state_env.step(expert.select_action(obs))
+        if terminated or truncated:
+            break
+    assert expert.retry_log == ["missed"]
+    assert info["is_success"], info["failure_mode"]
+    # without recovery the same disturbance ends the episode with the cube never grasped
+    obs, _ = state_env.reset(seed=0)
+    plain = ScriptedExpert()
+    plain.reset(0)
+    obs, *_ = state_env.step(plain.select_action(obs))
+    d.qpos[adr + 1] -= 0.04
+    mujoco.mj_forward(state_env.model, d)
+    while True:
+        obs, _, terminated, truncated, info = state_env.step(plain.select_action(obs))
+        if terminated or truncated:
+            break
+    assert info["failure_mode"] == "never_grasped" and plain.retries == 0

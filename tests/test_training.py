@@ -177,8 +177,9 @@ def test_checkpoint_loads_through_lerobot(dataset: Path, tiny: Path, tmp_path: P
         action = post(policy.select_action(pre(obs)))
     assert action.shape == (1, 6) and torch.isfinite(action).all()
     # the EMA weights differ from the raw ones after training
+    # the training state holds tensors and plain values only: it loads without unpickling code
     raw = torch.load(next((tmp_path / "run" / "checkpoints").glob("*/training_state.pt")),
-                     weights_only=False)["model"]
+                     weights_only=True)["model"]
     ema = _weights(r.pretrained_dir)
     assert any(not torch.equal(raw[k], ema[k]) for k in ema if k in raw)
     # the shipped form: fp16 on disk, fp32 after lerobot loads it, and a model card
@@ -216,3 +217,17 @@ def test_lerobot_eval_runs_the_checkpoint(dataset: Path, tiny: Path, tmp_path: P
 def test_bad_dataset_is_refused(tmp_path: Path) -> None:
     with pytest.raises(TrainError, match="not a LeRobotDataset"):
         train(tmp_path, tmp_path / "out", preset_name="cpu", steps=1, progress=False)
+
+
+def test_resume_refuses_a_preset_whose_architecture_changed(dataset: Path, tiny: Path,
+                                                            tmp_path: Path) -> None:
+    """Same preset name, other U-Net: a one-line refusal naming the change, not a traceback."""
+    preset = tmp_path / "tiny.toml"
+    preset.write_text(tiny.read_text())
+    train(dataset, tmp_path / "run", preset_name=str(preset), steps=2, progress=False)
+    preset.write_text(tiny.read_text().replace("down_dims = [16, 32, 64]",
+                                               "down_dims = [16, 32, 32]"))
+    with pytest.raises(TrainError, match=r"differs now \(down_dims: \[16, 32, 64\] -> "
+                                         r"\[16, 32, 32\]\)"):
+        train(dataset, tmp_path / "run", preset_name=str(preset), steps=4, resume=True,
+              progress=False)

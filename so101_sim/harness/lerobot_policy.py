@@ -36,6 +36,7 @@ import torch
 
 from so101_sim.env import CAMERAS, ENV_STATE_SIZE
 from so101_sim.harness.policies import ChunkRequest, PolicyInfo
+from so101_sim.trust import check_processor_files
 
 TRAIN_SIDECAR = "so101_sim_train.json"
 STATE_KEY = "observation.state"
@@ -69,6 +70,7 @@ class LeRobotPolicy:
         asked = {"n_action_steps": n_action_steps, "num_inference_steps": num_inference_steps,
                  "noise_scheduler_type": noise_scheduler}
         self.is_diffusion = cfg.type == "diffusion"
+        check_processor_files(self.path, cfg.type)  # before lerobot instantiates any step
         self._apply_settings(cfg, {k: v for k, v in asked.items() if v is not None})
         cfg.device = device
         self.cfg = cfg
@@ -203,6 +205,7 @@ class LeRobotPolicy:
     def _predict(self, batch: dict[str, torch.Tensor],
                  noise: torch.Tensor | None) -> torch.Tensor:
         if self.is_diffusion:
+            noise = None if noise is None else noise.to(self.cfg.device)
             actions = self.policy.predict_action_chunk(batch, noise=noise)
         else:
             actions = self.policy.predict_action_chunk(batch)[:, :self.n_action_steps]
@@ -214,7 +217,7 @@ class LeRobotPolicy:
         batch: dict[str, torch.Tensor] = {}
         lead = (self.batch_size, self.n_obs_steps) if self.is_diffusion else (self.batch_size,)
         for key, ft in self.cfg.input_features.items():
-            batch[key] = torch.rand((*lead, *ft.shape), generator=gen)
+            batch[key] = torch.rand((*lead, *ft.shape), generator=gen).to(self.cfg.device)
         noise = None
         if self.is_diffusion:
             noise = torch.randn((self.batch_size, self.cfg.horizon,

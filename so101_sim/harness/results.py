@@ -65,7 +65,14 @@ class RunDir:
             raise ValueError(f"{self.path} already holds an evaluation ({EPISODES}); pass "
                              "--resume to finish it, or choose another --out")
         if resume and self.config_path.exists():
-            old = json.loads(self.config_path.read_text())
+            try:
+                old = json.loads(self.config_path.read_text(encoding="utf-8"))
+                if not isinstance(old, dict):
+                    raise ValueError("not a JSON object")
+            except (ValueError, UnicodeDecodeError) as e:
+                raise ValueError(f"cannot resume {self.path}: {self.config_path} is corrupt "
+                                 f"({e}); delete that folder, or evaluate into a new --out"
+                                 ) from None
             diff = [f"{k}: {old.get(k)!r} there, {v!r} now" for k, v in identity.items()
                     if old.get(k) != v]
             if diff:

@@ -193,6 +193,10 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
     bar = tqdm(total=episodes, initial=len(done), unit="ep", disable=not progress,
                dynamic_ncols=True)
     n_run = 0
+    if info.cameras or videos:
+        from so101_sim.rendering import select_gl_backend
+
+        select_gl_backend()  # choose (and print) once here: workers inherit MUJOCO_GL
     pool = EnvPool(min(n_envs, len(todo)), cfg, timeout_s=worker_timeout_s)
     slots = [_Slot() for _ in range(pool.size)]
     # Rows per policy forward: the policy's own batch size (LeRobotPolicy pads to it), else all.

@@ -1,0 +1,115 @@
+"""Per-step training speed of a preset under settings that do not change what is learnt.
+
+    .venv/bin/python benchmarks/bench_train_step.py [--preset cpu] [--steps 20]
+
+Each variant runs in its own child process (fresh torch, same seed, same synthetic batch shapes
+as `so101-sim train` feeds the policy) one after another in this one run, so the ratios compare
+like with like: fp32, bf16 autocast, bf16 + channels_last memory format, bf16 + torch.compile
+(inductor on CPU; compile time is reported apart from the steady state), and 1 vs all threads.
+The first `--warmup` steps are excluded. Pause other CPU work while it runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+VARIANTS = {
+    "fp32": {},
+    "bf16": {"bf16": True},
+    "bf16+channels_last": {"bf16": True, "channels_last": True},
+    "bf16+compile": {"bf16": True, "compile": True},
+    "bf16 1-thread": {"bf16": True, "threads": 1},
+}
+
+
+def child(preset_name: str, steps: int, warmup: int, opts: dict) -> dict:
+    import torch
+
+    sys.path.insert(0, str(ROOT))
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+
+    from so101_sim.presets import load_preset, make_config, policy_features
+
+    if opts.get("threads"):
+        torch.set_num_threads(opts["threads"])
+    torch.manual_seed(0)
+    preset = load_preset(preset_name)
+    cfg = make_config(preset, *policy_features(preset.image_size))
+    policy = DiffusionPolicy(cfg)
+    policy.train()
+    if opts.get("channels_last"):
+        policy = policy.to(memory_format=torch.channels_last)
+    opt = torch.optim.AdamW(policy.parameters(), lr=1e-4)
+    b, n_obs, h = preset.train.batch_size, cfg.n_obs_steps, cfg.horizon
+    gen = torch.Generator().manual_seed(0)
+    batch = {"observation.state": torch.rand(b, n_obs, 6, generator=gen) * 2 - 1,
+             "action": torch.rand(b, h, 6, generator=gen) * 2 - 1,
+             "action_is_pad": torch.zeros(b, h, dtype=torch.bool)}
+    for cam in ("front", "side"):
+        img = torch.rand(b, n_obs, 3, *preset.image_size, generator=gen)
+        batch[f"observation.images.{cam}"] = img
+
+    forward = policy.forward
+    if opts.get("compile"):
+        forward = torch.compile(policy.forward)
+
+    def step() -> float:
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bool(opts.get("bf16"))):
+            loss, _ = forward(batch)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        return float(loss)
+
+    t0 = time.perf_counter()
+    for _ in range(warmup):
+        step()
+    warm_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        step()
+    dt = (time.perf_counter() - t0) / steps
+    return {"step_s": dt, "samples_per_s": b / dt, "warmup_s": warm_s,
+            "threads": torch.get_num_threads()}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--preset", default="cpu")
+    p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--warmup", type=int, default=5)
+    p.add_argument("--variants", default=",".join(VARIANTS))
+    p.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.child:
+        print(json.dumps(child(args.preset, args.steps, args.warmup, VARIANTS[args.child])))
+        return
+    print(f"preset {args.preset}, {args.steps} timed steps after {args.warmup} warm-up, "
+          f"load average {os.getloadavg()[0]:.2f} at start")
+    rows = []
+    for name in args.variants.split(","):
+        r = subprocess.run([sys.executable, __file__, "--preset", args.preset, "--steps",
+                            str(args.steps), "--warmup", str(args.warmup), "--child", name],
+                           capture_output=True, text=True)
+        if r.returncode != 0:
+            print(f"{name}: failed: {r.stderr.strip().splitlines()[-1]}")
+            continue
+        rows.append((name, json.loads(r.stdout.strip().splitlines()[-1])))
+    base = rows[0][1]["step_s"] if rows else 1.0
+    print(f"\n| variant | threads | s/step | samples/s | vs {rows[0][0]} | warm-up s |")
+    print("|---|---|---|---|---|---|")
+    for name, r in rows:
+        print(f"| {name} | {r['threads']} | {r['step_s']:.3f} | {r['samples_per_s']:.1f} | "
+              f"{base / r['step_s']:.2f}x | {r['warmup_s']:.1f} |")
+    print(f"load average {os.getloadavg()[0]:.2f} at end")
+
+
+if __name__ == "__main__":
+    main()

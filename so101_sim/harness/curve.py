@@ -1,0 +1,110 @@
+"""Success against training progress: evaluate a run's saved checkpoints on evaluation seeds.
+
+``so101-sim curve RUN --episodes 32`` runs the harness on each ``checkpoints/step_*/
+pretrained_model`` of a `so101-sim train` run (every one, or every `--every` steps), on the
+same seeds each time, and appends one line per checkpoint to ``RUN/eval_curve.jsonl`` (step,
+CPU-hours of training so far, successes, Wilson interval). Checkpoints already in the file
+are skipped, so it can be rerun as training goes on. ``plot_curve`` draws it (success with
+its interval against step and against training hours) for the model card.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+from so101_sim.stats import wilson_interval
+
+CURVE_FILE = "eval_curve.jsonl"
+_STEP = re.compile(r"step_(\d+)$")
+
+
+def run_checkpoints(run: Path) -> list[tuple[int, Path]]:
+    """(step, pretrained_model dir) of every saved checkpoint of a training run, by step."""
+    found = []
+    for d in (run / "checkpoints").glob("step_*"):
+        m = _STEP.search(d.name)
+        if m and (d / "pretrained_model" / "model.safetensors").is_file():
+            found.append((int(m.group(1)), d / "pretrained_model"))
+    return sorted(found)
+
+
+def read_curve(run: Path) -> list[dict[str, Any]]:
+    path = run / CURVE_FILE
+    if not path.is_file():
+        return []
+    rows = []
+    for line in path.read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue  # a line torn by a kill: that checkpoint is evaluated again
+    return sorted(rows, key=lambda r: r["step"])
+
+
+def evaluate_curve(run: str | Path, *, episodes: int = 32, every: int = 0, n_envs: int = 8,
+                   seed_start: int = 100_000, steps: list[int] | None = None,
+                   progress: bool = True) -> list[dict[str, Any]]:
+    """Evaluate the run's checkpoints not yet in its curve file; return the whole curve."""
+    from so101_sim.harness.runner import evaluate
+
+    run = Path(run)
+    checkpoints = run_checkpoints(run)
+    if not checkpoints:
+        raise ValueError(f"{run} holds no checkpoints/step_*/pretrained_model; pass the --out "
+                         "folder of a `so101-sim train` run")
+    done = {r["step"] for r in read_curve(run) if r.get("episodes") == episodes
+            and r.get("seed_start") == seed_start}
+    chosen = [(s, p) for s, p in checkpoints
+              if (steps is None or s in steps) and (every <= 0 or s % every == 0)
+              and s not in done]
+    for step, path in chosen:
+        info = json.loads((path / "so101_sim_train.json").read_text())
+        out = run / "eval_curve" / f"step_{step:07d}"
+        result = evaluate(str(path), episodes=episodes, n_envs=n_envs, seed_start=seed_start,
+                          out_dir=out, videos=0, resume=out.exists(), progress=progress,
+                          report=False)
+        agg = result["aggregated"]
+        k = round(agg["pc_success"] * episodes / 100)
+        lo, hi = wilson_interval(k, episodes)
+        row = {"step": step, "train_hours": round(info.get("train_wall_s", 0) / 3600, 3),
+               "episodes": episodes, "seed_start": seed_start, "successes": k,
+               "success": k / episodes, "ci95": [round(lo, 4), round(hi, 4)],
+               "failure_modes": agg.get("failure_modes", {})}
+        with (run / CURVE_FILE).open("a") as f:
+            f.write(json.dumps(row) + "\n")
+    return read_curve(run)
+
+
+def plot_curve(rows: list[dict[str, Any]], dest: Path, title: str = "") -> Path:
+    """Success (with 95% Wilson interval) against step and against training hours."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
+    for ax, key, label in ((axes[0], "step", "training step"),
+                           (axes[1], "train_hours", "training hours (this CPU)")):
+        x = [r[key] for r in rows]
+        y = [100 * r["success"] for r in rows]
+        lo = [100 * r["ci95"][0] for r in rows]
+        hi = [100 * r["ci95"][1] for r in rows]
+        ax.fill_between(x, lo, hi, alpha=0.25, color="tab:blue", label="95% Wilson interval")
+        ax.plot(x, y, "o-", color="tab:blue", label="success")
+        ax.set_xlabel(label)
+        ax.set_ylim(0, 100)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("success on evaluation seeds (%)")
+    axes[0].legend(loc="upper left", fontsize=8)
+    if rows:
+        n = rows[-1]["episodes"]
+        fig.suptitle(title or f"closed-loop success, {n} seeds from {rows[-1]['seed_start']} "
+                              "per checkpoint")
+    fig.tight_layout()
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(dest, dpi=110)
+    plt.close(fig)
+    return dest

@@ -1,0 +1,130 @@
+"""Bad input gets a clear error naming the thing, never a wrong answer or a hang."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from so101_sim.env import PickPlaceEnv
+from so101_sim.task import TaskSpecError, load_task
+
+TASK = Path(__file__).parents[1] / "envs" / "pick_place.toml"
+
+
+@pytest.fixture(scope="module")
+def env() -> PickPlaceEnv:
+    e = PickPlaceEnv(obs_type="state")
+    yield e
+    e.close()
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    ({"cube_pose": [np.nan, 0.05, 0.0]}, r"cube_pose=\[nan, 0.05, 0.0\] contains NaN or inf"),
+    ({"cube_pose": [0.2, np.inf, 0.0]}, "contains NaN or inf"),
+    ({"target_pos": [0.2, np.nan]}, "target_pos=.* contains NaN or inf"),
+    ({"cube_pose": [0.2, 0.05]}, r"cube_pose has shape \(2,\); expected \(3,\)"),
+    ({"cube_pose": "here"}, "cube_pose='here' is not numeric"),
+    ({"cube_pose": [2.0, 0.05, 0.0]}, "cube_pose x=2, y=0.05 is off the table; expected x in"),
+    ({"target_pos": [0.2, -0.9]}, "target_pos x=0.2, y=-0.9 is off the table"),
+    ({"cube_pose": [0.0, 0.0, 0.0]}, "is inside the robot's base"),
+    ({"cube_xyz": [0.2, 0.0]}, r"unknown reset options \['cube_xyz'\]"),
+])
+def test_bad_reset_options_are_refused(env: PickPlaceEnv, options: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        env.reset(seed=0, options=options)
+
+
+def test_valid_reset_options_still_pin_the_episode(env: PickPlaceEnv) -> None:
+    _, info = env.reset(seed=0, options={"cube_pose": [0.22, 0.06, 10.0],
+                                         "target_pos": [0.2, -0.1]})
+    np.testing.assert_allclose(info["cube_pose"], [0.22, 0.06, 10.0])
+    np.testing.assert_allclose(info["target_pos"], [0.2, -0.1])
+
+
+def test_mujoco_instability_ends_the_episode_as_sim_unstable(env: PickPlaceEnv, tmp_path: Path,
+                                                            monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)  # MuJoCo writes its warning to MUJOCO_LOG.TXT in the cwd
+    obs, _ = env.reset(seed=0)
+    adr = env.model.jnt_dofadr[env.model.joint("cube").id]
+    env.data.qvel[adr:adr + 3] = 1e12  # a blow-up: MuJoCo warns and resets the state itself
+    _, _, terminated, truncated, info = env.step(obs["agent_pos"])
+    assert terminated and not truncated
+    assert info["failure_mode"] == "sim_unstable"
+
+
+@pytest.mark.parametrize(("old", "new", "message"), [
+    ("physics_substeps = 8", "physics_substeps = 100000000",
+     "physics_substeps = 100000000 is too large; expected at most 1000"),
+    ("max_steps = 300", "max_steps = 5000000000000", "max_steps = 5000000000000 is too large"),
+])
+def test_task_numbers_that_would_hang_are_refused(tmp_path: Path, old: str, new: str,
+                                                  message: str) -> None:
+    path = tmp_path / "t.toml"
+    text = TASK.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new))
+    with pytest.raises(TaskSpecError, match=message):
+        load_task(path)
+
+
+def test_non_utf8_task_file_is_named(tmp_path: Path) -> None:
+    path = tmp_path / "latin1.toml"
+    path.write_bytes(TASK.read_text().replace("Pick up", "Pick up caf\u00e9").encode("latin-1"))
+    with pytest.raises(TaskSpecError, match=r"latin1\.toml: not UTF-8 text"):
+        load_task(path)
+
+
+def _cli(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    exe = Path(sys.executable).parent / "so101-sim"
+    return subprocess.run([str(exe), *args], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "HF_HUB_OFFLINE": "1", **(env or {})})
+
+
+def test_corrupt_eval_config_is_named(tmp_path: Path) -> None:
+    out = tmp_path / "ev"
+    assert _cli("eval", "--policy", "expert", "--episodes", "1", "--n-envs", "1",
+                "--videos", "0", "--out", str(out)).returncode == 0
+    (out / "eval_config.json").write_text('{"policy": "exp')
+    r = _cli("eval", "--policy", "expert", "--episodes", "1", "--n-envs", "1", "--videos", "0",
+             "--out", str(out), "--resume")
+    assert r.returncode == 2
+    assert "eval_config.json is corrupt" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_unwritable_out_is_one_line(tmp_path: Path) -> None:
+    # /sys refuses new folders even to root; elsewhere a read-only folder does the same
+    target = "/sys/so101_sim_test" if os.path.isdir("/sys") else str(tmp_path / "ro" / "x")
+    r = _cli("eval", "--policy", "expert", "--episodes", "1", "--out", target)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "permission denied; choose a folder you own" in r.stderr
+
+
+def test_unusable_mujoco_gl_lists_what_works() -> None:
+    code = "import so101_sim.env"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "MUJOCO_GL": "nonsense"})
+    assert r.returncode != 0
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("RuntimeError: MUJOCO_GL='nonsense' cannot be used")
+    assert "backends that work here" in last or "no headless backend works" in last
+    r = _cli("eval", "--policy", "expert", "--episodes", "1", "--videos", "1",
+             env={"MUJOCO_GL": "nonsense"})
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "MUJOCO_GL='nonsense' cannot be used" in r.stderr
+
+
+def test_corrupt_train_log_is_skipped_by_export(tmp_path: Path, capsys) -> None:
+    from so101_sim.export import loss_curve
+
+    log = tmp_path / "train_log.jsonl"
+    rows = [{"step": i, "loss": 1.0 / i, "lr": 1e-4, "samples_per_s": 10} for i in (1, 2, 3)]
+    log.write_text(json.dumps(rows[0]) + "\n\x00\x00garbage\n" + json.dumps(rows[1]) + "\n"
+                   + json.dumps(rows[2])[:20])
+    assert [r["step"] for r in loss_curve(log)] == [1, 2]
+    assert "train_log.jsonl: skipped unreadable line 2" in capsys.readouterr().out
