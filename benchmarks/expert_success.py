@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from so101_sim.env import PickPlaceEnv
 from so101_sim.expert import ScriptedExpert
-from so101_sim.recording import run_episode
+from so101_sim.recording import expert_options, run_episode
 from so101_sim.stats import wilson_interval
 
 
@@ -30,10 +30,12 @@ def main() -> None:
     parser.add_argument("--task", default="pick_place")
     parser.add_argument("--dart-noise", type=float, default=0.0)
     parser.add_argument("--recover", action="store_true", help="expert retries failed attempts")
+    parser.add_argument("--grasp-clearance", type=float, default=None,
+                        help="fixed-jaw gap at the grasp in metres (default: the expert's)")
     args = parser.parse_args()
 
     env = PickPlaceEnv(task=args.task, obs_type="state")
-    expert = ScriptedExpert(args.task, recover=args.recover)
+    expert = ScriptedExpert(args.task, **expert_options(args.recover, args.grasp_clearance))
     modes: collections.Counter[str] = collections.Counter()
     retries: collections.Counter[str] = collections.Counter()
     recovered = 0

@@ -235,7 +235,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      "success rate with interval, failure modes, videos, report")
     ev.add_argument("--policy", required=True,
                     help="'expert', a lerobot checkpoint directory (config.json, "
-                         "model.safetensors, saved processors) or 'package.module:factory'")
+                         "model.safetensors, saved processors; read as data: processor steps "
+                         "must be ones lerobot registers) or 'package.module:factory', which "
+                         "IMPORTS AND RUNS that Python code: use it only for your own code")
     ev.add_argument("--task", default="pick_place", help="task name in envs/ or a .toml path")
     ev.add_argument("--episodes", type=int, default=50)
     ev.add_argument("--n-envs", type=int, default=8,
