@@ -75,7 +75,8 @@ def evaluate_curve(run: str | Path, *, episodes: int = 32, every: int = 0, n_env
                "failure_modes": agg.get("failure_modes", {})}
         with (run / CURVE_FILE).open("a") as f:
             f.write(json.dumps(row) + "\n")
-    return read_curve(run)
+    return [r for r in read_curve(run)
+            if r.get("episodes") == episodes and r.get("seed_start") == seed_start]
 
 
 def plot_curve(rows: list[dict[str, Any]], dest: Path, title: str = "") -> Path:
