@@ -231,3 +231,22 @@ def test_resume_refuses_a_preset_whose_architecture_changed(dataset: Path, tiny:
                                          r"\[16, 32, 32\]\)"):
         train(dataset, tmp_path / "run", preset_name=str(preset), steps=4, resume=True,
               progress=False)
+
+
+def test_success_curve_goes_into_the_card(dataset: Path, tiny: Path, tmp_path: Path) -> None:
+    """`so101-sim curve` evaluates each saved checkpoint on the same seeds; export draws it."""
+    from so101_sim.export import export_policy
+    from so101_sim.harness.curve import evaluate_curve
+
+    run = tmp_path / "run"
+    train(dataset, run, preset_name=str(tiny), steps=4, progress=False)
+    rows = evaluate_curve(run, episodes=1, n_envs=1, progress=False)
+    assert [r["step"] for r in rows] == [2, 4]
+    assert all(r["episodes"] == 1 and r["successes"] in (0, 1) for r in rows)
+    again = evaluate_curve(run, episodes=1, n_envs=1, progress=False)  # nothing left to run
+    assert again == rows
+    shipped = export_policy(run / "checkpoints" / "step_0000004" / "pretrained_model",
+                            tmp_path / "shipped")
+    card = (shipped / "README.md").read_text()
+    assert "![success against training](curve.png)" in card and (shipped / "curve.png").is_file()
+    assert "| 4 | " in card
