@@ -128,3 +128,18 @@ def test_corrupt_train_log_is_skipped_by_export(tmp_path: Path, capsys) -> None:
                    + json.dumps(rows[2])[:20])
     assert [r["step"] for r in loss_curve(log)] == [1, 2]
     assert "train_log.jsonl: skipped unreadable line 2" in capsys.readouterr().out
+
+
+def test_gl_backend_line_is_printed_once_not_per_worker(tmp_path: Path) -> None:
+    sys.path.insert(0, str(Path(__file__).parent))
+    from tiny_policy import make_tiny_diffusion_checkpoint, short_task
+
+    ckpt = make_tiny_diffusion_checkpoint(tmp_path / "tiny")
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+    r = subprocess.run([str(Path(sys.executable).parent / "so101-sim"), "eval", "--policy",
+                        str(ckpt), "--task", str(short_task(tmp_path, 10)), "--episodes", "2",
+                        "--n-envs", "2", "--videos", "0", "--out", str(tmp_path / "ev")],
+                       capture_output=True, text=True, timeout=300,
+                       env={**env, "HF_HUB_OFFLINE": "1"})
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stderr.count("MUJOCO_GL not set; rendering with") == 1, r.stderr[-2000:]
