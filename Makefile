@@ -5,6 +5,9 @@ SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# lerobot imports installed distributions named lerobot_env_*: this one makes `lerobot-eval
+# --env.type=so101_pick_place` work without --env.discover_packages_path
+PLUGIN := plugins/lerobot_env_so101_sim
 SHIPPED := policy/pick_place_diffusion
 
 # The first Python 3.12 found: on PATH, under pyenv, or in the usual system places.
@@ -19,7 +22,7 @@ export HF_HUB_OFFLINE := 1
 
 venv: $(STAMP)
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml $(PLUGIN)/pyproject.toml
 	@if [ -z "$(PYTHON312)" ]; then \
 		echo "error: Python 3.12 not found (lerobot 0.6.x needs 3.12)."; \
 		echo "  install it, e.g.: pyenv install 3.12 | apt-get install python3.12 python3.12-venv"; \
@@ -29,7 +32,7 @@ $(STAMP): pyproject.toml
 	@[ -x $(PY) ] && $(PY) -c 'import sys; sys.exit(sys.version_info[:2] != (3, 12))' \
 		|| { rm -rf $(VENV); $(PYTHON312) -m venv $(VENV); }
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[dev]"
+	$(PY) -m pip install --quiet -e ".[dev]" -e ./$(PLUGIN)
 	@touch $(STAMP)
 
 demo: $(STAMP)

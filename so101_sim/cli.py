@@ -19,10 +19,25 @@ def parse_image_size(text: str) -> tuple[int, int]:
     return h, w
 
 
-def _demo(args: argparse.Namespace) -> int:
-    from so101_sim.demo import run_demo
+def parse_camera_map_arg(text: str) -> dict[str, str]:
+    """argparse type for --camera-map (see so101_sim.harness.camera_map)."""
+    from so101_sim.harness.camera_map import parse_camera_map
 
-    paths = run_demo(Path(args.out), steps=args.steps, image_size=args.image_size,
+    try:
+        return parse_camera_map(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from so101_sim.demo import contact_sheet, parse_grid, run_demo
+
+    if args.grid:  # one PNG of many seeds' first frames
+        sheet = contact_sheet(Path(args.out), args.task, parse_grid(args.grid), args.seed,
+                              args.image_size or (240, 320))
+        print(f"contact sheet: {sheet}")
+        return 0
+    paths = run_demo(Path(args.out), steps=args.steps, image_size=args.image_size or (480, 640),
                      seed=args.seed, task=args.task)
     for name, path in paths.items():
         print(f"{name}: {path}")
@@ -37,12 +52,14 @@ def _record(args: argparse.Namespace) -> int:
                    image_size=args.image_size, keep_failures=args.keep_failures,
                    resume=args.resume, workers=args.workers, dart_noise=args.dart_noise,
                    vcodec=args.vcodec, recover=args.recover,
-                   grasp_clearance=args.grasp_clearance)
+                   grasp_clearance=args.grasp_clearance, backend=args.backend,
+                   ray_address=args.ray_address, checkpoint_every=args.checkpoint_every)
     except KeyboardInterrupt:
         print(f"so101-sim record: interrupted; {args.out} holds every completed episode "
               "(continue with --resume)", file=sys.stderr)
         return 130
-    print(f"{args.out}: {s['episodes']} episodes ({s['new_episodes']} new; "
+    reused = f"; {s['reused']} recovered from before a kill" if s.get("reused") else ""
+    print(f"{args.out}: {s['episodes']} episodes ({s['new_episodes']} new{reused}; "
           f"{s['successes']}/{s['tried']} seeds succeeded), "
           f"{s['env_steps']} env-steps in {s['seconds']:.1f} s = {s['steps_per_s']:.1f} steps/s")
     return 0
@@ -85,7 +102,8 @@ def _eval(args: argparse.Namespace) -> int:
     options = {k: v for k, v in (("n_action_steps", args.n_action_steps),
                                  ("num_inference_steps", args.inference_steps),
                                  ("noise_scheduler", args.noise_scheduler),
-                                 ("batch_size", args.policy_batch)) if v is not None}
+                                 ("batch_size", args.policy_batch),
+                                 ("camera_map", args.camera_map)) if v is not None}
     if args.threads:
         import torch
 
@@ -95,11 +113,17 @@ def _eval(args: argparse.Namespace) -> int:
             from so101_sim.devices import resolve_device
 
             options["device"] = resolve_device(args.device)
+        if "," in args.task or args.task == "all":  # one table over several tasks
+            from so101_sim.harness.suite import evaluate_suite_from_args
+
+            evaluate_suite_from_args(args, options)
+            return 0
         policy = load_policy(args.policy, task=args.task, **options)
         evaluate(policy, task=args.task, episodes=args.episodes, n_envs=args.n_envs,
                  seed_start=args.seed_start, out_dir=args.out, videos=args.videos,
                  image_size=args.image_size, resume=args.resume,
-                 allow_train_seeds=args.allow_train_seeds)
+                 allow_train_seeds=args.allow_train_seeds, backend=args.backend,
+                 ray_address=args.ray_address)
     except KeyboardInterrupt:
         print("so101-sim eval: interrupted; every finished episode is in episodes.jsonl "
               "(finish with the same arguments plus --resume)", file=sys.stderr)
@@ -121,6 +145,19 @@ def _curve(args: argparse.Namespace) -> int:
     return 0
 
 
+def _compare(args: argparse.Namespace) -> int:
+    from so101_sim.harness.compare import compare_runs, summary_lines, write_comparison
+
+    r = compare_runs(args.run_a, args.run_b)
+    out = args.out or (Path("outputs/compare") / f"{Path(args.run_a).name}-vs-"
+                                                  f"{Path(args.run_b).name}")
+    for line in summary_lines(r):
+        print(line)
+    json_path, md_path = write_comparison(r, out)
+    print(f"-> {json_path}, {md_path}")
+    return 0
+
+
 def _export(args: argparse.Namespace) -> int:
     from so101_sim.export import export_policy
 
@@ -136,6 +173,29 @@ def _export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _explain(args: argparse.Namespace) -> int:
+    from so101_sim.explain import explain
+
+    ex = explain(Path(args.dataset), args.policy, episode=args.episode, frame=args.frame,
+                 k=args.k, out=args.out, preset=args.preset, seed=args.seed)
+    n = ex.numbers
+    rmse = n["sampling"]["rmse_executed"]
+    print(f"loss {n['loss']['mse']:.4f} at k={n['noise']['k']}; sampled chunk vs recorded "
+          f"actions: max RMSE {max(rmse) if rmse else float('nan'):.2f} over the executed rows")
+    print(f"page: {ex.html_path}  numbers: {ex.json_path}")
+    return 0
+
+
+def add_backend_args(p: argparse.ArgumentParser, count_flag: str) -> None:
+    """--backend / --ray-address, shared by eval and record."""
+    p.add_argument("--backend", choices=("local", "ray"), default="local",
+                   help=f"where the {count_flag} envs run: local processes (default) or Ray "
+                        "actors (pip install 'so101-sim[ray]'); results are the same")
+    p.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="with --backend ray: 'auto' or HOST:PORT joins a running cluster "
+                        "(`ray start --head` first); omitted, a local Ray runtime is started")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="so101-sim", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -146,8 +206,11 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--steps", type=int, default=240)
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--task", default="pick_place", help="task name in envs/ or a .toml path")
-    demo.add_argument("--image-size", type=parse_image_size, default=(480, 640),
-                      help="HEIGHTxWIDTH of each camera (default 480x640)")
+    demo.add_argument("--image-size", type=parse_image_size, default=None,
+                      help="HEIGHTxWIDTH of each camera (default 480x640; 240x320 with --grid)")
+    demo.add_argument("--grid", default=None, metavar="ROWSxCOLS",
+                      help="instead of a rollout, write one PNG of the first front frame of "
+                           "ROWS*COLS seeds from --seed (e.g. --task pick_place_dr --grid 4x4)")
     demo.set_defaults(func=_demo)
 
     rec = sub.add_parser("record", help="record scripted-expert demonstrations as a "
@@ -163,8 +226,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--resume", action="store_true",
                      help="continue an existing dataset up to --episodes without repeating a seed")
     rec.add_argument("--workers", type=int, default=1,
-                     help="processes that simulate, render and encode in parallel (one per "
-                          "CPU core is best); episodes are still stored in seed order")
+                     help="workers that simulate, render and encode in parallel (processes, "
+                          "or Ray actors with --backend ray; one per CPU core is best); "
+                          "episodes are still stored in seed order")
     rec.add_argument("--dart-noise", type=float, default=0.0, metavar="STD",
                      help="DART noise: execute the expert's action plus Gaussian noise of this "
                           "std (degrees; gripper 0..100 units) while `action` keeps the clean "
@@ -180,6 +244,11 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--vcodec", choices=["h264", "libsvtav1"], default=None,
                      help="video codec of a new dataset (default h264: about half the CPU of "
                           "AV1 per frame; a resumed dataset keeps its own)")
+    rec.add_argument("--checkpoint-every", type=int, default=50, metavar="N",
+                     help="finalize the dataset every N episodes (default 50). A kill loses "
+                          "no finished episode either way (--resume recovers them); this "
+                          "bounds the recovery work and the spooled episodes on disk")
+    add_backend_args(rec, "--workers")
     rec.set_defaults(func=_record)
 
     rep = sub.add_parser("replay", help="re-simulate a recorded episode from its seed and "
@@ -238,11 +307,14 @@ def build_parser() -> argparse.ArgumentParser:
                          "model.safetensors, saved processors; read as data: processor steps "
                          "must be ones lerobot registers) or 'package.module:factory', which "
                          "IMPORTS AND RUNS that Python code: use it only for your own code")
-    ev.add_argument("--task", default="pick_place", help="task name in envs/ or a .toml path")
+    ev.add_argument("--task", default="pick_place",
+                    help="task name in envs/ or a .toml path; several as a,b,c or 'all' "
+                         "(one folder per task under --out, one table, eval_info.json "
+                         "grouped per task)")
     ev.add_argument("--episodes", type=int, default=50)
     ev.add_argument("--n-envs", type=int, default=8,
-                    help="env worker processes (default 8, which fills one policy forward); "
-                         "results per seed do not depend on it")
+                    help="env workers (default 8, which fills one policy forward): processes, "
+                         "or Ray actors with --backend ray; results per seed depend on neither")
     ev.add_argument("--seed-start", type=int, default=100_000,
                     help="first seed (default 100000; training seeds are below it)")
     ev.add_argument("--allow-train-seeds", action="store_true",
@@ -269,7 +341,45 @@ def build_parser() -> argparse.ArgumentParser:
                          "envs always run on CPU workers")
     ev.add_argument("--policy-batch", type=int, default=None,
                     help="rows per policy forward, padded (default 8; 1 = one env per forward)")
+    ev.add_argument("--camera-map", type=parse_camera_map_arg, default=None,
+                    metavar="POLICY_CAM=ENV_CAM,...",
+                    help="feed env cameras (front, side) to policy camera inputs named after "
+                         "another rig, e.g. top=front,wrist=side; the summary and report "
+                         "state the mapping")
+    add_backend_args(ev, "--n-envs")
     ev.set_defaults(func=_eval)
+
+    cmp = sub.add_parser("compare", help="compare two eval folders seed by seed: both rates, "
+                                         "the paired table, exact McNemar p, the difference "
+                                         "with its interval")
+    cmp.add_argument("run_a", help="an `so101-sim eval --out` folder (A)")
+    cmp.add_argument("run_b", help="another one over the same seeds and task (B)")
+    cmp.add_argument("--out", default=None, help="folder for compare.json and compare.md "
+                                                 "(default outputs/compare/<A>-vs-<B>)")
+    cmp.set_defaults(func=_compare)
+
+    xp = sub.add_parser("explain", help="trace one training example through a Diffusion "
+                                        "Policy, step by step with real numbers: one "
+                                        "self-contained HTML page + JSON")
+    xp.add_argument("--dataset", required=True, help="LeRobotDataset folder (so101-sim record)")
+    xp.add_argument("--policy", default=None,
+                    help="lerobot diffusion checkpoint folder (read as data: processor steps "
+                         "must be ones lerobot registers); default: a fresh, untrained "
+                         "--preset policy with this dataset's normalisation stats")
+    xp.add_argument("--preset", default="seed",
+                    help="preset of the fresh policy when no --policy (default seed)")
+    xp.add_argument("--episode", type=int, default=0)
+    xp.add_argument("--frame", type=int, default=5,
+                    help="current frame t within the episode (default 5: frames 4 and 5 are "
+                         "observed, as in the walkthrough)")
+    xp.add_argument("--k", type=int, default=25,
+                    help="diffusion step at which noise is added for the loss (default 25)")
+    xp.add_argument("--seed", type=int, default=0,
+                    help="seed of the noise (loss and sampling) and of a fresh policy")
+    xp.add_argument("--out", default=None, help="output folder for explain.html and "
+                                                "explain.json (default "
+                                                "outputs/explain/<policy>-ep<E>-f<F>)")
+    xp.set_defaults(func=_explain)
     return parser
 
 

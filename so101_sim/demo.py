@@ -1,4 +1,6 @@
-"""Roll the env with a fixed joint-space action sequence and save what the cameras saw."""
+"""Roll the env with a fixed joint-space action sequence and save what the cameras saw; or,
+with a grid, one contact sheet of many seeds' first frames (what a task's randomization spans).
+"""
 
 from __future__ import annotations
 
@@ -8,7 +10,7 @@ import imageio.v2 as imageio
 import numpy as np
 from tqdm import tqdm
 
-from so101_sim.env import CAMERAS, PickPlaceEnv
+from so101_sim.env import PickPlaceEnv
 
 # Joint-space waypoints (LeRobot units) visited in order: reach out over the table, sweep
 # across the workspace opening and closing the gripper, and return to rest.
@@ -49,8 +51,43 @@ def run_demo(out_dir: Path, steps: int = 240, image_size: tuple[int, int] = (480
             if terminated or truncated:
                 break
     paths = {"video": video_path}
-    for cam in CAMERAS:
+    for cam in env.cameras:
         paths[cam] = out_dir / f"{cam}.png"
         imageio.imwrite(paths[cam], obs["pixels"][cam])
     env.close()
     return paths
+
+
+def parse_grid(text: str) -> tuple[int, int]:
+    """"4x4" -> (rows, columns)."""
+    try:
+        rows, cols = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        rows = cols = 0
+    if not (1 <= rows <= 16 and 1 <= cols <= 16):
+        raise ValueError(f"grid {text!r} is invalid; expected ROWSxCOLUMNS with 1..16 each, "
+                         "e.g. 4x4")
+    return rows, cols
+
+
+def contact_sheet(out_dir: Path, task: str = "pick_place_dr", grid: tuple[int, int] = (4, 4),
+                  seed: int = 0, image_size: tuple[int, int] = (240, 320),
+                  camera: str = "front") -> Path:
+    """Write contact_sheet.png: the first `camera` frame of seeds seed.. seed+rows*cols-1,
+    row by row, each labelled with its seed; returns its path."""
+    from PIL import Image, ImageDraw
+
+    rows, cols = grid
+    out_dir.mkdir(parents=True, exist_ok=True)
+    env = PickPlaceEnv(task=task, image_size=image_size, cameras=(camera,))
+    h, w = image_size
+    sheet = Image.new("RGB", (cols * w, rows * h))
+    for i in tqdm(range(rows * cols), desc="contact sheet", unit="seed"):
+        obs, _ = env.reset(seed=seed + i)
+        tile = Image.fromarray(obs["pixels"][camera])
+        ImageDraw.Draw(tile).text((4, 2), f"seed {seed + i}", fill=(255, 255, 255))
+        sheet.paste(tile, ((i % cols) * w, (i // cols) * h))
+    env.close()
+    path = out_dir / f"contact_sheet_{env.task.name}_{rows}x{cols}.png"
+    sheet.save(path)
+    return path

@@ -1,12 +1,16 @@
 """LeRobot env plugin: makes ``--env.type=so101_pick_place`` build ``so101_sim/PickPlace-v0``.
 
-Usage with lerobot 0.6.1 (the ``discover_packages_path`` argument imports this module, which
-registers the config below with draccus before the command line is parsed)::
+Usage with lerobot 0.6.1. The ``lerobot_env_so101_sim`` distribution (``plugins/``, installed by
+``make venv``) imports this module when any lerobot command starts, which registers the config
+below with draccus before the command line is parsed; without it, add
+``--env.discover_packages_path=so101_sim.lerobot_plugin``::
 
-    lerobot-eval --env.type=so101_pick_place \\
-        --env.discover_packages_path=so101_sim.lerobot_plugin \\
-        --env.image_height=96 --env.image_width=128 \\
+    lerobot-eval --env.type=so101_pick_place --env.task=pick_place \\
+        --env.image_height=60 --env.image_width=80 \\
         --policy.path=outputs/train/.../pretrained_model --eval.n_episodes=50 --eval.batch_size=1
+
+``--env.task`` is any task ``so101_sim.task.load_task`` accepts (a name in envs/ or a TOML
+path); ``fps`` and ``episode_length`` default to the task's.
 
 In Python, ``import so101_sim.lerobot_plugin`` and then
 ``lerobot.envs.factory.make_env(SO101PickPlaceEnvConfig(...), n_envs=1)``.
@@ -25,8 +29,8 @@ from lerobot.envs.utils import NEW_ROLLOUT_OPTION
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
 from so101_sim import ENV_ID
-from so101_sim.env import CAMERAS, ENV_STATE_SIZE, OBS_TYPES
-from so101_sim.task import load_task
+from so101_sim.env import OBS_TYPES, env_state_size
+from so101_sim.task import ALL_CAMERAS, load_task
 from so101_sim.units import FEATURE_NAMES
 
 # lerobot 0.6.1's `load_plugin` lists the submodules of whatever `discover_packages_path`
@@ -50,8 +54,8 @@ class SO101PickPlaceEnvConfig(EnvConfig):
     """
 
     task: str | None = "pick_place"  # name in envs/ or path to a task TOML
-    fps: int = 30  # must equal the task's [episode] fps
-    episode_length: int = 300  # TimeLimit for lerobot-eval; at most the task's max_steps
+    fps: int | None = None  # None: the task's [episode] fps (another value is refused)
+    episode_length: int | None = None  # TimeLimit for lerobot-eval; None: the task's max_steps
     obs_type: str = "pixels_agent_pos"
     image_height: int = 480
     image_width: int = 640
@@ -62,7 +66,7 @@ class SO101PickPlaceEnvConfig(EnvConfig):
             ACTION: ACTION,
             "agent_pos": OBS_STATE,
             "environment_state": OBS_ENV_STATE,
-            **{f"pixels/{cam}": f"{OBS_IMAGES}.{cam}" for cam in CAMERAS},
+            **{f"pixels/{cam}": f"{OBS_IMAGES}.{cam}" for cam in ALL_CAMERAS},
         }
     )
 
@@ -72,6 +76,9 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         if not self.task:
             raise ValueError("task is required: a name in envs/ (e.g. 'pick_place') or a TOML path")
         spec = load_task(self.task)
+        self.fps = spec.fps if self.fps is None else self.fps
+        self.episode_length = (spec.max_steps if self.episode_length is None
+                               else self.episode_length)
         if self.fps != spec.fps:
             raise ValueError(f"fps={self.fps} but task {spec.name!r} runs at {spec.fps} Hz; the "
                              f"control rate comes from the task file, pass --env.fps={spec.fps}")
@@ -82,18 +89,20 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         self.features = self._derived_features()
 
     def _derived_features(self) -> dict[str, PolicyFeature]:
-        """Raw env keys (channel-last images, as the env returns them) -> PolicyFeature."""
+        """Raw env keys (channel-last images, as the env returns them) -> PolicyFeature; the
+        task file decides the cameras and the size of environment_state."""
+        spec = load_task(self.task)
         feats = {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(ACTION_DIM,)),
             "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(ACTION_DIM,)),
         }
         if self.obs_type != "state":
             shape = (self.image_height, self.image_width, 3)
-            for cam in CAMERAS:
+            for cam in spec.cameras:
                 feats[f"pixels/{cam}"] = PolicyFeature(type=FeatureType.VISUAL, shape=shape)
         if self.obs_type != "pixels_agent_pos":
             feats["environment_state"] = PolicyFeature(
-                type=FeatureType.ENV, shape=(ENV_STATE_SIZE,))
+                type=FeatureType.ENV, shape=(env_state_size(spec),))
         return feats
 
     @property

@@ -4,18 +4,16 @@ Everything is written through lerobot's own API (``LeRobotDataset.create`` / ``r
 ``add_frame``, ``save_episode``, ``finalize``) so the result loads in lerobot unchanged. Each
 frame also carries the episode's reset seed and initial cube pose, so any episode can be
 re-simulated exactly (``replay``). A small JSON sidecar in the dataset folder remembers every
-seed tried (kept or discarded), the noise level and the codec, so ``resume`` never repeats a
-seed and never mixes settings.
+seed tried (kept or discarded), the noise level, the expert options and the codec, so
+``resume`` never repeats a seed and never mixes settings.
 
-Parallel recording (``workers > 1``): each worker process simulates, renders and encodes whole
-episodes (its own env and lerobot ``StreamingVideoEncoder``) and hands back the episode's
-low-dimensional columns plus one finished mp4 per camera. The parent is the only writer: it
-saves episodes in seed order through the same ``save_episode`` path, with the worker's mp4s
-standing in for lerobot's streaming encoder (``recording_workers``). The dataset at ``out`` is
-therefore a normal LeRobotDataset at every moment, exactly like a one-process recording, and
-resume/interrupt work the same way. Seeds go out in increasing order and only while the
-episodes kept so far plus those in flight are fewer than wanted, so no surplus episode is ever
-recorded and the kept seeds are the same as with one process.
+Workers (``--workers N``, local processes or Ray actors through ``so101_sim.workers``)
+simulate, render and encode whole episodes (``record_worker``); this process is the only
+writer and stores episodes in seed order (``record_loop``), so the dataset is the same
+whatever the number of workers or the backend. Every finished episode is spooled before it is
+written and the dataset is checkpointed every ``checkpoint_every`` episodes
+(``record_store``): Ctrl-C or SIGTERM ends with a finalized dataset, and after a hard kill
+(SIGKILL, OOM, power loss) ``resume`` ends with every finished episode, no manual step.
 
 DART noise (``dart_noise > 0``): the env executes the expert's action plus Gaussian noise drawn
 from a per-episode stream seeded by the episode seed; ``action`` stays the expert's clean
@@ -24,26 +22,23 @@ action (the label) and ``action_executed`` stores what was executed, which ``rep
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import os
-import signal
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager, suppress
-from dataclasses import dataclass, field
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from so101_sim.record_store import SIDECAR, read_sidecar
 from so101_sim.units import FEATURE_NAMES
+from so101_sim.workers import check_backend
 
 #: Demonstrations come from the training seed range; seeds >= this are for evaluation only.
 EVAL_SEED_START = 100_000
 DEFAULT_REPO_ID = "local/so101_pick_place"
-SIDECAR = "so101_sim_recording.json"
 ROBOT_TYPE = "so101_follower"
 CAMERAS = ("front", "side")
 VIDEO_KEYS = tuple(f"observation.images.{cam}" for cam in CAMERAS)
@@ -55,7 +50,6 @@ VCODECS: dict[str, dict[str, Any]] = {
     "libsvtav1": {"vcodec": "libsvtav1"},
 }
 DEFAULT_VCODEC = "h264"
-WORKER_TMP = "tmp_workers"  # inside the dataset root: same filesystem, so mp4s move, not copy
 _DART_STREAM = 0xDA27  # second SeedSequence word: the noise never correlates with the jitter
 
 
@@ -119,7 +113,8 @@ def expert_options(recover: bool = False, grasp_clearance: float | None = None
     return options
 
 
-def _check_args(n_episodes: int, workers: int, seed_start: int, vcodec: str | None) -> None:
+def _check_args(n_episodes: int, workers: int, seed_start: int, vcodec: str | None,
+                checkpoint_every: int) -> None:
     if n_episodes < 1:
         raise ValueError(f"n_episodes={n_episodes}; expected >= 1")
     if not isinstance(workers, int) or workers < 1:
@@ -128,22 +123,14 @@ def _check_args(n_episodes: int, workers: int, seed_start: int, vcodec: str | No
     if vcodec is not None and vcodec not in VCODECS:
         raise ValueError(f"vcodec={vcodec!r} is not supported; expected one of "
                          f"{sorted(VCODECS)} (--vcodec h264 is the fast default)")
+    if not isinstance(checkpoint_every, int) or checkpoint_every < 1:
+        raise ValueError(f"checkpoint_every={checkpoint_every!r} is invalid; expected an "
+                         "integer >= 1 (episodes between dataset checkpoints), e.g. "
+                         "--checkpoint-every 50")
     check_seed_range(seed_start)
 
 
-# ----------------------------------------------------------------------------- sidecar / seeds
-def _read_sidecar(root: Path) -> dict[str, Any]:
-    path = root / SIDECAR
-    return json.loads(path.read_text()) if path.exists() else {}
-
-
-def _write_sidecar(root: Path, data: dict[str, Any]) -> None:
-    """Atomic write, so an interruption never leaves a half-written sidecar."""
-    tmp = root / (SIDECAR + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    tmp.replace(root / SIDECAR)
-
-
+# ----------------------------------------------------------------------------- seeds
 def _read_frames(root: Path, columns: list[str]) -> Any:
     """All rows of the dataset's data parquet files (only `columns`), as a pandas DataFrame."""
     import pandas as pd
@@ -168,51 +155,6 @@ def stored_seeds(root: str | Path) -> list[int]:
         return []
     first = df.groupby("episode_index")["episode_seed"].first()
     return [int(np.asarray(v).reshape(-1)[0]) for v in first.sort_index()]
-
-
-# ----------------------------------------------------------------------------- signals
-class _Interrupts:
-    """Turns SIGINT/SIGTERM into KeyboardInterrupt, deferred while an episode is being saved.
-
-    Deferring means a kill never lands inside ``save_episode`` (half-written parquet/video).
-    """
-
-    def __init__(self) -> None:
-        self.critical = False
-        self.pending: int | None = None
-        self._old: dict[int, Any] = {}
-
-    def _handler(self, signum: int, frame: Any) -> None:
-        if self.critical:
-            self.pending = signum
-        else:
-            raise KeyboardInterrupt(f"signal {signum}")
-
-    def install(self) -> None:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            with suppress(ValueError):  # not the main thread: leave signals alone
-                self._old[sig] = signal.signal(sig, self._handler)
-
-    def ignore(self) -> None:
-        """While closing: a second Ctrl-C must not corrupt the footer."""
-        for sig in self._old:
-            signal.signal(sig, signal.SIG_IGN)
-
-    def restore(self) -> None:
-        for sig, old in self._old.items():
-            signal.signal(sig, old)
-        self._old.clear()
-
-    @contextmanager
-    def deferred(self) -> Iterator[None]:
-        self.critical = True
-        try:
-            yield
-        finally:
-            self.critical = False
-        if self.pending is not None:
-            signum, self.pending = self.pending, None
-            raise KeyboardInterrupt(f"signal {signum}")
 
 
 # ----------------------------------------------------------------------------- one episode
@@ -256,164 +198,15 @@ def run_episode(env: Any, expert: Any, seed: int, emit: Callable[[dict[str, Any]
     return bool(step_info.get("is_success", False)), step_info.get("failure_mode"), steps
 
 
-# ----------------------------------------------------------------------------- bookkeeping
-@dataclass
-class _Tally:
-    """Counts, sidecar and progress bar, shared by the one-process and the worker recorder."""
-
-    root: Path
-    side: dict[str, Any]
-    kept: int
-    n_episodes: int
-    progress: bool
-    start_kept: int = 0
-    successes: int = 0
-    tried: int = 0
-    env_steps: int = 0
-    time_physics: float = 0.0
-    time_render: float = 0.0
-    time_write: float = 0.0  # wall time in the writer: feeding/finishing videos, save_episode
-    cpu_seconds: float = 0.0
-    t0: float = field(default_factory=time.perf_counter)
-    bar: Any = None
-
-    def __post_init__(self) -> None:
-        self.start_kept = self.kept
-        if self.progress:
-            from tqdm import tqdm
-            self.bar = tqdm(total=self.n_episodes, initial=self.kept, unit="ep", desc="record")
-
-    def episode(self, seed: int, success: bool, failure_mode: str | None, steps: int,
-                saved: bool) -> None:
-        """Account for one finished episode (call it inside ``_Interrupts.deferred``)."""
-        self.kept += saved
-        self.successes += success
-        self.tried += 1
-        self.env_steps += steps
-        if not success:
-            self.side["failures"][str(seed)] = failure_mode
-        self.side["tried"].append(seed)
-        _write_sidecar(self.root, self.side)
-
-    def show(self) -> None:
-        if self.bar is not None:
-            self.bar.update(self.kept - self.bar.n)
-            dt = time.perf_counter() - self.t0
-            self.bar.set_postfix(success=f"{self.successes}/{self.tried}",
-                                 steps_s=f"{self.env_steps / max(dt, 1e-9):.1f}")
-
-    def summary(self, workers: int) -> dict[str, Any]:
-        dt = time.perf_counter() - self.t0
-        return {"episodes": self.kept, "new_episodes": self.kept - self.start_kept,
-                "successes": self.successes, "tried": self.tried,
-                "failures": self.side["failures"], "env_steps": self.env_steps, "seconds": dt,
-                "steps_per_s": self.env_steps / max(dt, 1e-9), "workers": workers,
-                "dart_noise": self.side["dart_noise"], "vcodec": self.side["vcodec"],
-                "time_physics": self.time_physics, "time_render": self.time_render,
-                "time_write": self.time_write, "cpu_seconds": self.cpu_seconds}
-
-
-# ----------------------------------------------------------------------------- opening
-def _codec_of(features: dict[str, Any]) -> str | None:
-    """Codec a dataset's videos were written with (None before the first episode)."""
-    info = features.get(VIDEO_KEYS[0], {}).get("info") or {}
-    codec = info.get("video.codec")
-    return {"av1": "libsvtav1"}.get(codec, codec)
-
-
-def _resume_settings(root: Path, image_size: tuple[int, int], dart_noise: float,
-                     vcodec: str | None, expert: dict[str, Any]) -> tuple[dict[str, Any], str]:
-    """Sidecar of the dataset being resumed, and its codec; refuses a mismatch of settings."""
-    side = _read_sidecar(root)
-    if not (root / "meta" / "info.json").exists():
-        raise ValueError(f"{root} is not a LeRobot dataset (no meta/info.json); cannot --resume")
-    if side.get("image_size") and tuple(side["image_size"]) != image_size:
-        raise ValueError(f"{root} was recorded at {side['image_size'][0]}x"
-                         f"{side['image_size'][1]}; resume with --image-size to match")
-    features = _features(root)
-    old_noise = float(side.get("dart_noise", 0.0))
-    if old_noise != dart_noise:
-        raise ValueError(f"{root} was recorded with --dart-noise {old_noise:g}, not "
-                         f"{dart_noise:g}; resume with --dart-noise {old_noise:g} (a dataset "
-                         "holds one noise level)")
-    old_expert = side.get("expert", {})
-    if old_expert != expert:
-        raise ValueError(f"{root} was recorded with expert options {old_expert}, not {expert}; "
-                         "resume with the same --recover / --grasp-clearance")
-    codec = side.get("vcodec") or _codec_of(features) or vcodec or DEFAULT_VCODEC
-    if vcodec is not None and vcodec != codec:
-        raise ValueError(f"{root} holds {codec} videos; resume with --vcodec {codec} or "
-                         "without --vcodec (videos of one dataset share a codec)")
-    return side, codec
-
-
-def _encoder(vcodec: str, features: dict[str, Any] | None = None) -> Any:
-    """lerobot encoder config: the dataset's own settings when it has videos, else ours."""
-    from lerobot.configs.video import RGBEncoderConfig
-
-    info = (features or {}).get(VIDEO_KEYS[0], {}).get("info") or {}
-    if info.get("video.codec"):
-        return RGBEncoderConfig.from_video_info(info)
-    return RGBEncoderConfig(**VCODECS[vcodec])
-
-
-@dataclass
-class _Opened:
-    ds: Any
-    side: dict[str, Any]
-    next_seed: int
-    encoder_kwargs: dict[str, Any]
-
-
-def _open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
-                  image_size: tuple[int, int], seed_start: int, dart_noise: float,
-                  vcodec: str | None, queue_size: int, streaming_encoding: bool,
-                  expert: dict[str, Any]) -> _Opened:
-    """Create the dataset, or reopen it for appending; write the sidecar."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    exists = root.exists() and any(root.iterdir())
-    if exists and not resume:
-        raise ValueError(f"{root} already exists and is not empty; pass --resume to continue "
-                         "recording into it, or choose another --out")
-    # Streaming encoding with a queue that holds a whole episode: lerobot's encoder drops
-    # frames when its queue is full, which would desynchronise video and data under load.
-    writer_kwargs = {"streaming_encoding": streaming_encoding, "encoder_threads": 1,
-                     "encoder_queue_maxsize": queue_size}
-    if resume and exists:
-        side, codec = _resume_settings(root, image_size, dart_noise, vcodec, expert)
-        tried = [int(s) for s in side.get("tried", [])] + stored_seeds(root)
-        repo_id = side.get("repo_id", repo_id)
-        task_arg = side.get("task", task_arg)
-        encoder = _encoder(codec, _features(root))
-        ds = LeRobotDataset.resume(repo_id, root=root, rgb_encoder=encoder, **writer_kwargs)
-        failures = dict(side.get("failures", {}))
-        next_seed = max([seed_start - 1, *tried]) + 1
-    else:
-        if root.exists():
-            root.rmdir()  # empty: lerobot insists on creating the folder itself
-        codec = vcodec or DEFAULT_VCODEC
-        encoder = _encoder(codec)
-        ds = LeRobotDataset.create(repo_id=repo_id, fps=30, root=root, robot_type=ROBOT_TYPE,
-                                   features=dataset_features(image_size, dart_noise > 0),
-                                   use_videos=True, rgb_encoder=encoder, **writer_kwargs)
-        tried, failures, next_seed = [], {}, seed_start
-    side = {"repo_id": repo_id, "task": task_arg, "image_size": list(image_size),
-            "dart_noise": dart_noise, "vcodec": codec, "tried": sorted(set(tried)),
-            "failures": failures, "expert": expert}
-    _write_sidecar(root, side)
-    return _Opened(ds, side, next_seed, dataclasses.asdict(encoder))
-
-
 def _task_arg(task: str | Path, root: Path, resume: bool) -> str:
     """The task as stored in the sidecar: a name, or an absolute .toml path."""
     if resume and (root / SIDECAR).exists():
-        return str(_read_sidecar(root).get("task", task))
+        return str(read_sidecar(root).get("task", task))
     return str(Path(task).resolve()) if Path(str(task)).suffix == ".toml" else str(task)
 
 
 # ----------------------------------------------------------------------------- record
-def _quiet_libav() -> None:
+def quiet_libav() -> None:
     """Hide libav's info chatter (x264's per-file statistics, remux notes) on the console."""
     import av
 
@@ -423,105 +216,62 @@ def _quiet_libav() -> None:
 def record(out_dir: str | Path, n_episodes: int, task: str | Path = "pick_place",
            seed_start: int = 0, image_size: tuple[int, int] = (480, 640),
            keep_failures: bool = False, resume: bool = False, workers: int = 1,
-           repo_id: str = DEFAULT_REPO_ID, progress: bool = True,
-           streaming_encoding: bool = True, dart_noise: float = 0.0,
+           repo_id: str = DEFAULT_REPO_ID, progress: bool = True, dart_noise: float = 0.0,
            vcodec: str | None = None, recover: bool = False,
-           grasp_clearance: float | None = None) -> dict[str, Any]:
+           grasp_clearance: float | None = None, backend: str = "local",
+           ray_address: str | None = None, checkpoint_every: int = 50) -> dict[str, Any]:
     """Record `n_episodes` expert episodes (only successes unless `keep_failures`) to `out_dir`.
 
     Seeds run upward from `seed_start` (or, with `resume`, from after the largest seed already
-    tried); episodes are stored in seed order whatever `workers` is. Each episode is saved as
-    soon as it (and every lower seed) ends, and the dataset is finalized on any exit, including
-    Ctrl-C / SIGTERM, so an interrupted run loads with every completed episode. `vcodec` is
+    tried); episodes are stored in seed order whatever `workers` and `backend` are. `workers`
+    processes (``backend="local"``) or Ray actors (``"ray"``: a local Ray runtime, or the
+    cluster at `ray_address`, ``"auto"`` or ``host:port``) simulate, render and encode.
+    Every finished episode is spooled, and the dataset is checkpointed every
+    `checkpoint_every` episodes and on any exit we can catch (Ctrl-C, SIGTERM); after a hard
+    kill, `resume` recovers every finished episode (see ``record_store``). `vcodec` is
     ``"h264"`` (default for new datasets) or ``"libsvtav1"``; a resumed dataset keeps its own.
-    `workers` > 1 records in that many processes (see the module docstring); `dart_noise` is
-    the std of the noise added to executed actions (``run_episode``), 0 for none; `recover`
-    and `grasp_clearance` are ScriptedExpert options (retries; gap between the fixed pad and
-    the cube at the grasp, metres), stored with the dataset. Returns a
+    `dart_noise` is the std of the noise added to executed actions (``run_episode``), 0 for
+    none; `recover` and `grasp_clearance` are ScriptedExpert options (retries; gap between
+    the fixed pad and the cube at the grasp, metres), stored with the dataset. Returns a
     summary dict (episodes, successes, tried, env_steps, steps_per_s, seconds, and the
     time_physics / time_render / cpu_seconds spent by all recording processes).
     """
+    from so101_sim.record_dataset import open_dataset
+    from so101_sim.record_loop import Tally, record_episodes
+    from so101_sim.record_store import SCRATCH
+    from so101_sim.record_worker import RecorderSpec
     from so101_sim.task import load_task
 
-    _check_args(n_episodes, workers, seed_start, vcodec)
+    _check_args(n_episodes, workers, seed_start, vcodec, checkpoint_every)
+    check_backend(backend, ray_address)
+    if backend == "ray":  # say so before a dataset folder is created
+        from so101_sim.workers.ray_pool import import_ray
+
+        import_ray()
     dart_noise = check_dart_noise(dart_noise)
     expert = expert_options(recover, grasp_clearance)
-    _quiet_libav()
+    quiet_libav()
     from so101_sim.rendering import select_gl_backend
 
-    select_gl_backend()  # choose (and print) once here: worker processes inherit MUJOCO_GL
+    select_gl_backend()  # choose (and print) once here: workers inherit MUJOCO_GL
     root = Path(out_dir)
     image_size = (int(image_size[0]), int(image_size[1]))
     task_arg = _task_arg(task, root, resume)
     spec = load_task(task_arg)
     if spec.fps != 30:
         raise ValueError(f"task fps is {spec.fps}; the dataset is recorded at 30 fps")
-    opened = _open_dataset(root, resume, repo_id, task_arg, image_size,
-                           seed_start, dart_noise, vcodec, spec.max_steps + 2,
-                           streaming_encoding or workers > 1, expert)
-    tally = _Tally(root, opened.side, opened.ds.meta.total_episodes, n_episodes, progress)
-    if workers == 1:
-        _record_here(opened, tally, keep_failures, image_size)
-    else:
-        from so101_sim.recording_workers import record_with_workers
-
-        record_with_workers(opened, tally, keep_failures, image_size, workers, spec)
-    return tally.summary(workers)
-
-
-def _record_here(opened: _Opened, tally: _Tally, keep_failures: bool,
-                 image_size: tuple[int, int]) -> None:
-    """One process: simulate, render and feed lerobot's own streaming encoder."""
-    from so101_sim.env import PickPlaceEnv
-    from so101_sim.expert import ScriptedExpert
-
-    ds, side = opened.ds, opened.side
-    env = PickPlaceEnv(task=side["task"], obs_type="pixels_agent_pos_env_state",
-                       image_size=image_size)
-    expert = ScriptedExpert(env.task, **side["expert"])
-    next_seed, cpu0 = opened.next_seed, time.process_time()
-    interrupts = _Interrupts()
-    interrupts.install()
-
-    def add_frame(frame: dict[str, Any]) -> None:
-        t = time.perf_counter()
-        ds.add_frame(frame)
-        tally.time_write += time.perf_counter() - t
-
-    try:
-        while tally.kept < tally.n_episodes:
-            seed = next_seed
-            check_seed_range(seed)
-            next_seed += 1
-            success, mode, steps = run_episode(env, expert, seed, add_frame,
-                                               side["dart_noise"])
-            with interrupts.deferred():
-                t = time.perf_counter()
-                keep = success or keep_failures
-                if keep:
-                    ds.save_episode()
-                else:
-                    ds.clear_episode_buffer()
-                tally.time_write += time.perf_counter() - t
-                tally.episode(seed, success, mode, steps, keep)
-            tally.show()
-    finally:
-        interrupts.ignore()
-        try:
-            tally.time_physics, tally.time_render = env.time_physics, env.time_render
-            tally.cpu_seconds = time.process_time() - cpu0
-            _close(ds, tally)
-            env.close()
-        finally:
-            interrupts.restore()
-
-
-def _close(ds: Any, tally: _Tally) -> None:
-    if ds.has_pending_frames():
-        ds.clear_episode_buffer()
-    ds.finalize()
-    if tally.bar is not None:
-        tally.bar.close()
+    cpu0 = time.process_time()
+    opened = open_dataset(root, resume, repo_id, task_arg, image_size, seed_start, dart_noise,
+                          vcodec, spec.max_steps + 2, expert)
+    side = opened.side
+    tally = Tally(root, side, opened.ds.meta.total_episodes, n_episodes, progress)
+    worker_spec = RecorderSpec(side["task"], image_size, side["dart_noise"], side["expert"],
+                               keep_failures, opened.encoder_kwargs, spec.max_steps + 2,
+                               str((root / SCRATCH).resolve()))
+    record_episodes(opened, tally, worker_spec, workers, backend, ray_address,
+                    checkpoint_every, spec.description)
+    tally.cpu_seconds += time.process_time() - cpu0
+    return tally.summary(workers, backend)
 
 
 # ----------------------------------------------------------------------------- replay
@@ -545,7 +295,7 @@ def replay(dataset_dir: str | Path, episode: int) -> float:
     seed = int(np.asarray(ep["episode_seed"].iloc[0]).reshape(-1)[0])
     states = np.stack([np.asarray(s, dtype=np.float32) for s in ep["observation.state"]])
     actions = np.stack([np.asarray(a, dtype=np.float32) for a in ep[act_key]])
-    task = _read_sidecar(root).get("task", "pick_place")
+    task = read_sidecar(root).get("task", "pick_place")
 
     env = PickPlaceEnv(task=task, obs_type="state")
     try:

@@ -2,19 +2,27 @@
 
 A spec is validated on load; every error names the file, the key, what was expected and the
 allowed keys, so a typo in a task file fails loudly instead of silently using a default.
+
+``kind`` picks the goal and its success rule (``pick_place``, ``lift``, ``stack``, ``tidy``;
+see ``so101_sim.outcomes``); the other sections size and place the objects. The optional
+``[randomize]`` section (``so101_sim.randomization``) turns on domain randomization.
 """
 
 from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass, fields
+from dataclasses import MISSING, dataclass, fields
 from pathlib import Path
 from typing import Any
 
 from so101_sim.paths import envs_dir
+from so101_sim.randomization import Randomization, parse_randomize
 
 Range = tuple[float, float]
+KINDS = ("pick_place", "lift", "stack", "tidy")
+ALL_CAMERAS = ("front", "side", "wrist")
+DEFAULT_CAMERAS = ("front", "side")
 
 
 class TaskSpecError(ValueError):
@@ -48,6 +56,19 @@ class TaskSpec:
     msaa: bool
     mesh_grid: float
     source: str = ""
+    # The suite's additions. Defaults describe pick_place, and to_dict() leaves them out
+    # when at their default, so a pick_place spec hashes as it did before the suite existed.
+    kind: str = "pick_place"
+    cameras: tuple[str, ...] = DEFAULT_CAMERAS
+    n_cubes: int = 1
+    reach: Range | None = None
+    min_separation: float = 0.0
+    lift_height: float = 0.05
+    hold_steps: int = 30
+    base_size: float = 0.03
+    wall_height: float = 0.025
+    wall_thickness: float = 0.006
+    randomize: Randomization | None = None
 
     @property
     def control_dt(self) -> float:
@@ -58,12 +79,24 @@ class TaskSpec:
         return 1.0 / (self.fps * self.physics_substeps)
 
     def to_dict(self) -> dict[str, Any]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        out = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name in _SUITE_FIELDS and value == f.default:
+                continue  # see the comment on `kind`
+            out[f.name] = value.to_dict() if isinstance(value, Randomization) else value
+        return out
+
+
+_SUITE_FIELDS = frozenset({"kind", "cameras", "n_cubes", "reach", "min_separation",
+                           "lift_height", "hold_steps", "base_size", "wall_height",
+                           "wall_thickness", "randomize"})
 
 
 # (section, key) -> (field name, kind). Kinds: int+, float+, float>=0, bool, str, range, pose6.
 _SCHEMA: dict[str, dict[str, tuple[str, str]]] = {
-    "": {"name": ("name", "str"), "description": ("description", "str")},
+    "": {"name": ("name", "str"), "description": ("description", "str"),
+         "kind": ("kind", "str")},
     "episode": {
         "fps": ("fps", "int+"),
         "physics_substeps": ("physics_substeps", "int+"),
@@ -87,12 +120,24 @@ _SCHEMA: dict[str, dict[str, tuple[str, str]]] = {
         "settle_steps": ("settle_steps", "int+"),
         "max_speed": ("max_speed", "float+"),
         "release_clearance": ("release_clearance", "float>=0"),
+        "lift_height": ("lift_height", "float+"),
+        "hold_steps": ("hold_steps", "int+"),
     },
+    "layout": {"reach": ("reach", "range"), "min_separation": ("min_separation", "float>=0")},
+    "stack": {"base_size": ("base_size", "float+")},
+    "box": {"cubes": ("n_cubes", "int+"), "wall_height": ("wall_height", "float+"),
+            "wall_thickness": ("wall_thickness", "float+")},
     "render": {
         "shadows": ("shadows", "bool"),
         "msaa": ("msaa", "bool"),
         "mesh_grid": ("mesh_grid", "float>=0"),
+        "cameras": ("cameras", "cameras"),
     },
+}
+# Sections a kind does not use may be left out of its file.
+_KIND_DEFAULTS: dict[str, dict[str, Any]] = {
+    "lift": {"target_x": (0.0, 0.0), "target_y": (0.0, 0.0), "target_radius": 0.0,
+             "settle_steps": 1, "max_speed": 0.02, "release_clearance": 0.0},
 }
 _DEFAULTS = {"rest_noise": 0.0, "terminate_on_success": True, "shadows": False, "msaa": False,
              "mesh_grid": 0.0, "description": "Pick up the red cube and place it on the target."}
@@ -105,6 +150,7 @@ _EXPECTED = {
     "str": "a string",
     "range": "[low, high] with low <= high",
     "pose6": "a list of 6 numbers (LeRobot units)",
+    "cameras": f"a non-empty list of distinct camera names from {list(ALL_CAMERAS)}",
 }
 
 
@@ -143,6 +189,10 @@ def _convert(value: Any, kind: str) -> Any | None:
     if kind == "pose6":
         ok = isinstance(value, list) and len(value) == 6 and all(map(_is_num, value))
         return tuple(float(v) for v in value) if ok else None
+    if kind == "cameras":
+        ok = (isinstance(value, list) and value and len(set(value)) == len(value)
+              and all(v in ALL_CAMERAS for v in value))
+        return tuple(value) if ok else None
     raise AssertionError(kind)
 
 
@@ -182,12 +232,22 @@ def load_task(task: str | Path | TaskSpec = "pick_place") -> TaskSpec:
 
 def parse_task(raw: dict[str, Any], source: str = "<dict>") -> TaskSpec:
     values: dict[str, Any] = dict(_DEFAULTS)
+    kind = raw.get("kind", "pick_place")
+    if kind not in KINDS:
+        raise TaskSpecError(f"{source}: kind = {kind!r} is invalid; expected one of {KINDS}")
+    values.update(_KIND_DEFAULTS.get(kind, {}))
     for section, content in raw.items():
+        if section == "randomize" and isinstance(content, dict):
+            try:
+                values["randomize"] = parse_randomize(content, source)
+            except ValueError as exc:
+                raise TaskSpecError(str(exc)) from None
+            continue
         if isinstance(content, dict):
             if section not in _SCHEMA or section == "":
                 raise TaskSpecError(
                     f"{source}: unknown section [{section}]; allowed sections: "
-                    f"{sorted(s for s in _SCHEMA if s)}")
+                    f"{sorted([*(s for s in _SCHEMA if s), 'randomize'])}")
             items = content.items()
             schema = _SCHEMA[section]
         else:
@@ -205,7 +265,8 @@ def parse_task(raw: dict[str, Any], source: str = "<dict>") -> TaskSpec:
                 raise TaskSpecError(f"{source}: {qualified} = {value!r} is invalid; expected "
                                     f"{_EXPECTED[kind]}")
             values[field_name] = converted
-    required = [f.name for f in fields(TaskSpec) if f.name not in values and f.name != "source"]
+    required = [f.name for f in fields(TaskSpec)
+                if f.name not in values and f.default is MISSING]
     if required:
         keys = [f"{s}.{k}" if s else k for s, sch in _SCHEMA.items() for k, (fn, _) in sch.items()
                 if fn in required]
@@ -218,4 +279,23 @@ def parse_task(raw: dict[str, Any], source: str = "<dict>") -> TaskSpec:
     if spec.cube_size < 0.01 or spec.cube_size > 0.05:
         raise TaskSpecError(f"{source}: cube.size = {spec.cube_size} is invalid; expected "
                             "0.01 .. 0.05 m (the gripper opens to about 6 cm)")
+    _check_kind(spec, source)
     return spec
+
+
+def _check_kind(spec: TaskSpec, source: str) -> None:
+    """Rules that depend on the task's kind."""
+    max_cubes = 4 if spec.kind == "tidy" else 1
+    if spec.n_cubes > max_cubes:
+        raise TaskSpecError(f"{source}: box.cubes = {spec.n_cubes} is invalid for kind "
+                            f"{spec.kind!r}; expected 1..{max_cubes} (only 'tidy' has several)")
+    if spec.kind == "lift" and spec.hold_steps > spec.max_steps:
+        raise TaskSpecError(f"{source}: success.hold_steps = {spec.hold_steps} is too large; "
+                            f"expected at most episode.max_steps = {spec.max_steps}")
+    if not 0.015 <= spec.base_size <= 0.05:
+        raise TaskSpecError(f"{source}: stack.base_size = {spec.base_size} is invalid; "
+                            "expected 0.015 .. 0.05 m")
+    if spec.reach is not None and spec.reach[0] <= 0:
+        raise TaskSpecError(f"{source}: layout.reach = {list(spec.reach)} is invalid; expected "
+                            "[low, high] distances from the base's pan axis with low > 0, "
+                            "e.g. [0.12, 0.26]")

@@ -21,6 +21,13 @@ catches a drop from ``baseline`` to ``true_rate`` with 80% power at alpha = 0.01
 
 Halving the drop roughly quadruples N. With fewer episodes the test still never fails a
 policy at its baseline more often than alpha; it just misses smaller drops.
+
+The paired form, ``assert_not_worse(candidate, baseline_run)``, reruns the seeds of a recorded
+``so101-sim eval`` folder and fails only on a significant drop seed by seed (one-sided exact
+McNemar). It needs no well-measured baseline rate, and it needs fewer episodes than the
+one-sample test whenever that test's baseline is itself measured on N seeds; against a
+baseline known exactly it wins only when the policies disagree on few seeds beyond the lost
+ones (README, "Comparing two policies"; ``so101_sim.stats.paired_episodes_needed``).
 """
 
 from __future__ import annotations
@@ -93,6 +100,66 @@ def assert_success_rate(policy: Any, *, baseline: float, episodes: int,
           f"failures {agg['failure_modes'] or 'none'}")
     if not check.passed:
         _fail(f"success rate regression: {check.line()}; failure modes {agg['failure_modes']}")
+    return check
+
+
+@dataclass(frozen=True)
+class PairedCheck:
+    """The outcome of one paired (same-seed) test of a candidate against a baseline run."""
+
+    comparison: dict[str, Any]  # so101_sim.harness.compare's result, A = candidate
+    alpha: float
+    p_value: float  # one-sided exact McNemar, H1 "the candidate is worse"
+
+    @property
+    def passed(self) -> bool:
+        return self.p_value >= self.alpha
+
+    def line(self) -> str:
+        r, p = self.comparison, self.comparison["paired"]
+        lo, hi = r["difference_ci95_pp"]
+        verdict = "OK" if self.passed else "SIGNIFICANTLY WORSE THAN BASELINE"
+        return (f"candidate {r['a']['n_success']}/{r['n_seeds']} vs baseline "
+                f"{r['b']['n_success']}/{r['n_seeds']} on the same seeds (only candidate "
+                f"{p['only_a']}, only baseline {p['only_b']}); difference "
+                f"{r['difference_pp']:+.1f} points (95% CI {lo:+.1f} to {hi:+.1f}); one-sided "
+                f"exact McNemar p = {self.p_value:.4g} (alpha {self.alpha}): {verdict}")
+
+
+def assert_not_worse(candidate: Any, baseline_run: str | Path, *, alpha: float = 0.01,
+                     task: str | Path | None = None, n_envs: int = 2,
+                     out_dir: str | Path | None = None, **evaluate_kwargs: Any) -> PairedCheck:
+    """Evaluate `candidate` on exactly the seeds and task of `baseline_run` (an ``so101-sim
+    eval`` folder) and fail the calling test only if it is significantly worse seed by seed:
+    the one-sided exact McNemar test at `alpha`. `task` defaults to the baseline's task name
+    (pass the .toml path if the baseline ran a task file outside envs/)."""
+    from so101_sim.harness import evaluate
+    from so101_sim.harness.compare import check_comparable, load_run, paired_result
+    from so101_sim.stats import mcnemar_p_value
+
+    if not 0.0 < alpha < 0.5:
+        raise ValueError(f"alpha={alpha} is invalid; expected a small level such as 0.01")
+    base = load_run(baseline_run)
+    seeds = sorted(base.success)
+    if seeds != list(range(seeds[0], seeds[0] + len(seeds))):
+        raise ValueError(f"{baseline_run} holds non-consecutive seeds; expected a finished "
+                         "`so101-sim eval` run (seeds seed_start..seed_start+episodes-1)")
+    evaluate_kwargs = {"videos": 0, "progress": False, "report": False,
+                       "allow_train_seeds": seeds[0] < EVAL_SEED_START, **evaluate_kwargs}
+    with tempfile.TemporaryDirectory(prefix="so101_paired_") as tmp:
+        out = Path(out_dir) if out_dir else Path(tmp) / "eval"
+        evaluate(candidate, task=task or base.task, episodes=len(seeds), n_envs=n_envs,
+                 seed_start=seeds[0], out_dir=out, log=lambda _: None, **evaluate_kwargs)
+        cand = load_run(out)
+    check_comparable(cand, base)
+    r = paired_result(cand, base)
+    check = PairedCheck(r, alpha, mcnemar_p_value(r["paired"]["only_a"], r["paired"]["only_b"],
+                                                  alternative="less"))
+    print(f"{cand.policy} vs baseline {base.policy} ({baseline_run}) on {base.task}: "
+          f"{check.line()}")
+    if not check.passed:
+        _fail(f"paired regression: {check.line()}; seeds only the baseline solved: "
+              f"{r['seeds_only_b'][:20]}")
     return check
 
 

@@ -110,7 +110,7 @@ def test_interrupt_then_resume(tmp_path: Path, sig: signal.Signals, workers: int
     assert 1 <= done < 4
     first = stored_seeds(root)
     assert len(first) == done and first == sorted(first)
-    assert not (root / "tmp_workers").exists()
+    assert not (root / ".so101_tmp").exists()  # temporary files go with the run
 
     out = subprocess.run(_cli("record", *common, "--resume"), env=env,
                          capture_output=True, timeout=180)
@@ -160,7 +160,8 @@ def test_two_workers_match_one_process(dataset: Path, dataset_w2: Path) -> None:
     last = ds[len(ds) - 1]  # the last frame decodes: videos hold every frame
     for cam in ("front", "side"):
         assert last[f"observation.images.{cam}"].shape == (3, *SMALL)
-    assert not (dataset_w2 / "tmp_workers").exists()
+    assert not (dataset_w2 / ".so101_tmp").exists()
+    assert not (dataset_w2 / ".so101_spool").exists()
     assert replay(dataset_w2, 1) == 0.0
 
 

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from so101_sim.env import CAMERAS, ENV_STATE_SIZE
+from so101_sim.harness.camera_map import describe_camera_map, resolve_camera_map
 from so101_sim.harness.policies import ChunkRequest, PolicyInfo
 from so101_sim.trust import check_processor_files
 
@@ -54,11 +55,14 @@ class LeRobotPolicy:
     ``n_action_steps``, ``num_inference_steps`` and ``noise_scheduler`` override the
     checkpoint's inference settings (with a warning); None keeps the checkpoint's.
     ``batch_size``: rows per forward (see the module docstring); 1 = one forward per env.
+    ``camera_map``: policy camera name -> env camera, for checkpoints whose cameras are named
+    after another rig (``so101_sim.harness.camera_map``).
     """
 
     def __init__(self, path: str | Path, *, n_action_steps: int | None = None,
                  num_inference_steps: int | None = None, noise_scheduler: str | None = None,
                  batch_size: int = DEFAULT_BATCH, device: str = "cpu",
+                 camera_map: dict[str, str] | None = None,
                  log: Callable[[str], None] = print) -> None:
         self.path = Path(path).expanduser()
         self.log = log
@@ -66,7 +70,11 @@ class LeRobotPolicy:
             raise ValueError(f"batch_size={batch_size} is invalid; expected >= 1")
         _check_files(self.path)
         cfg = _load_config(self.path)
-        self.cameras, image_size, self.env_state = _check_features(cfg, self.path)
+        policy_cams, image_size, self.env_state = _check_features(cfg, self.path)
+        # policy camera name -> env camera that feeds it (--camera-map; identity by default)
+        self.camera_map = resolve_camera_map(policy_cams, camera_map, f"checkpoint {self.path}")
+        self.cameras = tuple(c for c in CAMERAS if c in self.camera_map.values())
+        renamed = {p: e for p, e in self.camera_map.items() if p != e}
         asked = {"n_action_steps": n_action_steps, "num_inference_steps": num_inference_steps,
                  "noise_scheduler_type": noise_scheduler}
         self.is_diffusion = cfg.type == "diffusion"
@@ -88,8 +96,9 @@ class LeRobotPolicy:
             cameras=self.cameras, needs_env_state=self.env_state, image_size=image_size,
             train_image_size=_read_train_sidecar(self.path),
             n_obs_steps=self.n_obs_steps, n_action_steps=self.n_action_steps,
-            fingerprint=_fingerprint(self.path, {**asked, "batch_size": self.batch_size}),
-            details=self._details())
+            fingerprint=_fingerprint(self.path, {**asked, "batch_size": self.batch_size,
+                                                 **({"camera_map": renamed} if renamed else {})}),
+            details=self._details(), camera_map=renamed)
 
     # --------------------------------------------------------------------- settings
     def _apply_settings(self, cfg: Any, asked: dict[str, Any]) -> None:
@@ -153,6 +162,8 @@ class LeRobotPolicy:
             d["sampler"] = f"{cfg.noise_scheduler_type}-{steps}, noise seeded per episode"
         else:
             d["observations / chunk executed"] = f"{self.n_obs_steps} / {self.n_action_steps}"
+        if any(p != e for p, e in self.camera_map.items()):
+            d["cameras"] = describe_camera_map(self.camera_map)
         d["batched inference"] = (f"padded to {self.batch_size} rows per forward"
                                   if self.batch_size > 1 else "one env per forward")
         return d
@@ -190,8 +201,8 @@ class LeRobotPolicy:
             obs = [r.history[t] for r in rows]
             env_batch: dict[str, Any] = {"agent_pos": np.stack([o["agent_pos"] for o in obs])}
             if self.cameras:
-                env_batch["pixels"] = {c: np.stack([o["pixels"][c] for o in obs])
-                                       for c in self.cameras}
+                env_batch["pixels"] = {p: np.stack([o["pixels"][e] for o in obs])
+                                       for p, e in self.camera_map.items()}
             if self.env_state:
                 env_batch["environment_state"] = np.stack(
                     [o["environment_state"] for o in obs])
@@ -260,8 +271,8 @@ def _load_config(path: Path) -> Any:
 
 
 def _check_features(cfg: Any, path: Path) -> tuple[tuple[str, ...], Any, bool]:
-    """The cameras, image size and env-state use the checkpoint expects; errors if the env
-    cannot provide them."""
+    """The camera names, image size and env-state use the checkpoint expects; errors if the
+    env cannot provide them (camera names are matched to env cameras by the caller)."""
     where = f"checkpoint {path}"
     cams: list[str] = []
     sizes: set[tuple[int, int]] = set()
@@ -280,10 +291,7 @@ def _check_features(cfg: Any, path: Path) -> tuple[tuple[str, ...], Any, bool]:
                                  f"environment_state is ({ENV_STATE_SIZE},)")
             env_state = True
         elif key.startswith(IMAGE_PREFIX):
-            cam = key[len(IMAGE_PREFIX):]
-            if cam not in CAMERAS:
-                raise ValueError(f"{where} expects camera {cam!r} ({key}); the env renders "
-                                 f"{list(CAMERAS)}: retrain on those, or rename the feature")
+            cam = key[len(IMAGE_PREFIX):]  # env cameras are matched by resolve_camera_map
             if len(shape) != 3 or shape[0] != 3:
                 raise ValueError(f"{where} expects {key} of shape {shape}; {expected}")
             cams.append(cam)
@@ -299,7 +307,7 @@ def _check_features(cfg: Any, path: Path) -> tuple[tuple[str, ...], Any, bool]:
         raise ValueError(f"{where} outputs action of shape "
                          f"{None if action is None else tuple(action.shape)}; the env takes "
                          "(6,) absolute joint targets in LeRobot units")
-    return tuple(c for c in CAMERAS if c in cams), (sizes.pop() if sizes else None), env_state
+    return tuple(cams), (sizes.pop() if sizes else None), env_state
 
 
 def _load_weights(cfg: Any, path: Path) -> Any:

@@ -33,6 +33,8 @@ class PolicyInfo:
     ``n_obs_steps``: observations per request (To). ``n_action_steps``: actions returned per
     request and executed before the next one (Ta). ``fingerprint``: identifies the weights and
     settings, so ``--resume`` can refuse a different policy. ``details``: shown in the report.
+    ``camera_map``: policy camera name -> env camera, for inputs named unlike the env's
+    cameras (``--camera-map``); ``cameras`` lists the env cameras, which are what is rendered.
     """
 
     name: str
@@ -44,6 +46,7 @@ class PolicyInfo:
     n_action_steps: int = 1
     fingerprint: str = ""
     details: dict[str, Any] = field(default_factory=dict)
+    camera_map: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         unknown = set(self.cameras) - set(CAMERAS)

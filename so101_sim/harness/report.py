@@ -39,6 +39,7 @@ def write_report(out_dir: str | Path, result: dict[str, Any],
         f"| physics / render / policy | {t['physics_s']:.1f} / {t['render_s']:.1f} / "
         f"{t['policy_s']:.1f} s (summed over episodes) |",
     ]
+    lines += _worker_rows(cfg)
     for key, value in cfg.get("policy_details", {}).items():
         lines.append(f"| {key} | {value} |")
     lines.append(f"| policy fingerprint | `{cfg['policy_fingerprint']}` |")
@@ -49,6 +50,21 @@ def write_report(out_dir: str | Path, result: dict[str, Any],
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def _worker_rows(cfg: dict[str, Any]) -> list[str]:
+    """Where the envs ran, and every episode that had to be run again (and why)."""
+    w = cfg.get("workers")
+    rows = []
+    if w and w.get("workers"):
+        where = f"{w['backend']} backend, {w['workers']} workers on {w['nodes']} node(s)"
+        if w.get("restarts"):
+            where += f", {w['restarts']} replaced after dying"
+        rows.append(f"| env workers | {where} |")
+    for r in cfg.get("reruns", []):
+        rows.append(f"| re-run | seed {r['seed']}: {r['error']} (run again; the result "
+                    "counted is the re-run's) |")
+    return rows
 
 
 def _modes(modes: dict[str, int]) -> str:

@@ -81,7 +81,19 @@ class RunDir:
                                  "or a new --out")
         self.path.mkdir(parents=True, exist_ok=True)
         self.config_path.write_text(json.dumps(identity, indent=2) + "\n")
+        if resume:
+            self._drop_torn_tail()
         return self.done() if resume else {}
+
+    def _drop_torn_tail(self) -> None:
+        """Cut a last line that a kill left unfinished (no newline), so the next record
+        starts on a line of its own instead of being glued to the fragment."""
+        if not self.episodes_path.exists():
+            return
+        data = self.episodes_path.read_bytes()
+        if data and not data.endswith(b"\n"):
+            with self.episodes_path.open("r+b") as f:
+                f.truncate(data.rfind(b"\n") + 1)
 
     def done(self) -> dict[int, EpisodeRecord]:
         """Finished episodes by seed (a torn last line from a killed run is skipped)."""

@@ -7,6 +7,8 @@ With more envs than rows per forward, the others step and render while the polic
 An episode's outcome depends only on its seed, the policy and the task: episodes start from
 their seed, the policy's per-episode state is per slot and seeded by the episode seed, and the
 lerobot adapter keeps batched inference bitwise independent of which envs share a batch.
+The workers come from ``so101_sim.workers`` (local processes or Ray actors): the loop below
+is the same on both, and so are the results.
 """
 
 from __future__ import annotations
@@ -23,11 +25,12 @@ from typing import Any
 
 import numpy as np
 
+from so101_sim.harness.env_worker import EnvWorkerConfig
 from so101_sim.harness.policies import ChunkRequest, EvalPolicy, PolicyInfo, load_policy
 from so101_sim.harness.results import EpisodeRecord, RunDir, aggregate, per_episode
-from so101_sim.harness.workers import EnvPool, WorkerConfig, WorkerDied
 from so101_sim.recording import EVAL_SEED_START
 from so101_sim.task import TaskSpec, load_task
+from so101_sim.workers import PoolInfo, Reply, check_backend, start_pool
 
 VIDEO_ONLY_SIZE = (240, 320)  # render size for videos of policies that use no cameras
 
@@ -94,19 +97,28 @@ def evaluate(policy: EvalPolicy | str, *, task: str = "pick_place", episodes: in
              videos: int = 2, image_size: tuple[int, int] | None = None, resume: bool = False,
              allow_train_seeds: bool = False, worker_timeout_s: float = 600.0,
              max_retries: int = 2, progress: bool = True, report: bool = True,
+             backend: str = "local", ray_address: str | None = None,
              log: Callable[[str], None] = print) -> dict[str, Any]:
     """Evaluate `policy` on `episodes` seeds from `seed_start`; return the eval_info dict.
 
     `policy` is an ``EvalPolicy``, ``"expert"`` or a lerobot checkpoint directory. Writes
     episodes.jsonl (as episodes end), eval_info.json, videos of the first `videos` episodes
     and report.md/report.png into `out_dir` (default outputs/eval/<policy>-<task>-<time>).
+    `backend`: where the envs run, ``"local"`` (processes here) or ``"ray"`` (Ray actors; a
+    local Ray runtime, or the cluster at `ray_address`: ``"auto"`` or ``host:port``). Results
+    per seed do not depend on it; policy forwards always run batched in this process.
     """
     spec = load_task(task)
     if not isinstance(policy, EvalPolicy):
         policy = load_policy(policy, task=task)
     _check_args(episodes, n_envs, seed_start, videos, allow_train_seeds)
+    check_backend(backend, ray_address)
     info = policy.info
     rendering = choose_rendering(info, image_size)
+    if info.camera_map:  # inputs named after another rig: say which env camera feeds which
+        from so101_sim.harness.camera_map import describe_camera_map
+
+        rendering.label += f"; cameras: {describe_camera_map(info.camera_map)}"
     if out_dir is None:
         stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
         out_dir = Path("outputs/eval") / f"{info.name}-{spec.name}-{stamp}"
@@ -128,10 +140,12 @@ def evaluate(policy: EvalPolicy | str, *, task: str = "pick_place", episodes: in
         f"{min(n_envs, max(1, len(todo)))} envs; images: {rendering.label}")
 
     t_start = time.perf_counter()
-    n_run = 0
+    n_run, workers = 0, PoolInfo(backend, 0)
+    reruns: list[dict[str, Any]] = []
     if todo:
-        n_run = _run(policy, run, spec, rendering, todo, done, seed_start, episodes,
-                     n_envs, videos, worker_timeout_s, max_retries, progress)
+        n_run, workers = _run(policy, run, spec, rendering, todo, done, seed_start, episodes,
+                              n_envs, videos, worker_timeout_s, max_retries, progress,
+                              backend, ray_address, reruns, log)
     eval_s = time.perf_counter() - t_start
 
     records = [done[s] for s in sorted(done)]
@@ -140,10 +154,11 @@ def evaluate(policy: EvalPolicy | str, *, task: str = "pick_place", episodes: in
         "per_episode": per_episode(records),
         "aggregated": aggregated,
         "config": {**identity, "n_envs": n_envs, "images": rendering.label,
-                   "policy_details": info.details,
-                   "video_paths": [r.video for r in records if r.video]},
+                   "policy_details": info.details, "workers": workers.to_dict(),
+                   "reruns": reruns, "video_paths": [r.video for r in records if r.video]},
     }
-    result["summary"] = summary_line(info.name, spec.name, aggregated, run.path)
+    result["summary"] = summary_line(info.name, spec.name, aggregated, run.path,
+                                     images=rendering.label)
     run.write_info(result)
     if report:
         from so101_sim.harness.report import write_report
@@ -153,7 +168,8 @@ def evaluate(policy: EvalPolicy | str, *, task: str = "pick_place", episodes: in
     return result
 
 
-def summary_line(policy: str, task: str, agg: dict[str, Any], out: Path) -> str:
+def summary_line(policy: str, task: str, agg: dict[str, Any], out: Path,
+                 images: str | None = None) -> str:
     lo, hi = agg["success_ci95"]
     t = agg["time"]
     modes = ", ".join(f"{k} {v}" for k, v in agg["failure_modes"].items()) or "none"
@@ -161,7 +177,8 @@ def summary_line(policy: str, task: str, agg: dict[str, Any], out: Path) -> str:
             f"{agg['pc_success']:.1f}% (95% CI {lo:.1f}-{hi:.1f}); failures: {modes}; "
             f"avg length {agg['avg_episode_len']:.0f} steps; {agg['eval_s']:.1f} s "
             f"({agg['eval_ep_s']:.2f} s/episode; physics {t['physics_s']:.1f} s, render "
-            f"{t['render_s']:.1f} s, policy {t['policy_s']:.1f} s) -> {out}")
+            f"{t['render_s']:.1f} s, policy {t['policy_s']:.1f} s)"
+            + (f"; images: {images}" if images else "") + f" -> {out}")
 
 
 def _check_args(episodes: int, n_envs: int, seed_start: int, videos: int,
@@ -182,13 +199,16 @@ def _check_args(episodes: int, n_envs: int, seed_start: int, videos: int,
 
 def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, todo: deque,
          done: dict[int, EpisodeRecord], seed_start: int, episodes: int, n_envs: int,
-         videos: int, worker_timeout_s: float, max_retries: int, progress: bool) -> int:
-    """Run every seed in `todo`; add each finished episode to `done` and to the run folder."""
+         videos: int, worker_timeout_s: float, max_retries: int, progress: bool,
+         backend: str, ray_address: str | None, reruns: list[dict[str, Any]],
+         log: Callable[[str], None]) -> tuple[int, PoolInfo]:
+    """Run every seed in `todo`; add each finished episode to `done` and to the run folder,
+    and each episode that had to be run again to `reruns`. Returns (episodes run, workers)."""
     from tqdm import tqdm
 
     info = policy.info
-    cfg = WorkerConfig(task=task, render_size=rendering.render_size, cameras=info.cameras,
-                       env_state=info.needs_env_state, n_obs_steps=info.n_obs_steps)
+    cfg = EnvWorkerConfig(task=task, render_size=rendering.render_size, cameras=info.cameras,
+                          env_state=info.needs_env_state, n_obs_steps=info.n_obs_steps)
     failures: Counter[int] = Counter()
     bar = tqdm(total=episodes, initial=len(done), unit="ep", disable=not progress,
                dynamic_ncols=True)
@@ -197,7 +217,9 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
         from so101_sim.rendering import select_gl_backend
 
         select_gl_backend()  # choose (and print) once here: workers inherit MUJOCO_GL
-    pool = EnvPool(min(n_envs, len(todo)), cfg, timeout_s=worker_timeout_s)
+    pool = start_pool(cfg, min(n_envs, len(todo)), backend=backend, ray_address=ray_address,
+                      name="so101-eval-worker", preload=("so101_sim.env",),
+                      timeout_s=worker_timeout_s, log=log)
     slots = [_Slot() for _ in range(pool.size)]
     # Rows per policy forward: the policy's own batch size (LeRobotPolicy pads to it), else all.
     batch = max(1, int(getattr(policy, "batch_size", 0) or pool.size))
@@ -210,18 +232,19 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                                  steps=s.steps, seconds=time.perf_counter() - s.t0, error=why))
         slots[i] = _Slot()
         failures[seed] += 1
+        reruns.append({"seed": seed, "error": why.strip().splitlines()[0]})
         if failures[seed] > max_retries:
             raise RuntimeError(f"episode with seed {seed} failed {failures[seed]} times; last "
                                f"error: {why.strip()}")
         bar.write(f"so101-sim eval: seed {seed}: {why.splitlines()[0]}; running it again")
         todo.appendleft(seed)
 
-    def handle(replies: dict[int, Any]) -> None:
+    def handle(replies: list[Reply]) -> None:
         nonlocal n_run
-        for i, reply in replies.items():
-            s = slots[i]
-            if isinstance(reply, WorkerDied | str):
-                fail(i, str(reply))
+        for r in replies:
+            i, s, reply = r.worker, slots[r.worker], r.value
+            if r.failed:
+                fail(i, r.failed)
                 continue
             s.physics_s += reply["physics_s"]
             s.render_s += reply["render_s"]
@@ -233,14 +256,15 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                     failure_mode=reply["failure_mode"], steps=s.steps,
                     sum_reward=float(sum(s.rewards)), max_reward=float(max(s.rewards)),
                     seconds=time.perf_counter() - s.t0, physics_s=s.physics_s,
-                    render_s=s.render_s, policy_s=s.policy_s, video=reply.get("video"),
+                    render_s=s.render_s, policy_s=s.policy_s,
+                    video=_save_video(s.video, reply.get("video_mp4")),
                     actions_sha=reply["actions_sha"])
                 run.append(rec)
                 done[rec.seed] = rec
                 n_run += 1
                 slots[i] = _Slot()
                 bar.update(1)
-                rate = 100.0 * sum(r.success for r in done.values()) / len(done)
+                rate = 100.0 * sum(e.success for e in done.values()) / len(done)
                 bar.set_postfix_str(f"success {rate:.1f}%")
                 continue
             t0 = time.perf_counter()
@@ -263,7 +287,7 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                                "n_action_steps, joints)")
         for j, i in enumerate(ready):
             slots[i].policy_s += share
-            pool.send(i, ("act", actions[j]))
+            pool.submit(i, "act", actions[j])
 
     try:
         while todo or any(s.seed is not None for s in slots):
@@ -275,17 +299,30 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                     slots[i] = _Slot(seed=seed, episode_ix=ix, t0=time.perf_counter(),
                                      video=str(video) if video else None)
                     policy.start_episode(i, seed)
-                    pool.send(i, ("reset", seed, slots[i].video))
+                    pool.submit(i, "reset", seed, slots[i].video is not None)
             # A forward as soon as it is full (or nothing else can arrive): with more envs than
             # rows per forward, the other envs step and render while the policy runs.
             if len(waiting) >= batch or (waiting and not pool.busy):
                 forward([waiting.popleft() for _ in range(min(batch, len(waiting)))])
                 continue
             handle(pool.collect(wait_all=False))
+        workers = pool.info()
     finally:
         pool.close()
         bar.close()
-    return n_run
+    return n_run, workers
+
+
+def _save_video(path: str | None, mp4: bytes | None) -> str | None:
+    """Write a worker's episode video under its final name (whole, or not at all)."""
+    if path is None or mp4 is None:
+        return None
+    final = Path(path)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    part = final.with_name(final.stem + ".part.mp4")
+    part.write_bytes(mp4)
+    part.replace(final)
+    return str(final)
 
 
 def _to_policy_obs(obs: dict[str, Any], rendering: Rendering) -> dict[str, Any]:

@@ -1,8 +1,9 @@
 """Episode videos: front|side side by side with the step and, at the end, the outcome drawn on.
 
-Written inside the env worker, frame by frame, so no frames cross process boundaries. The file
-appears under its final name only once the episode ended: a worker that dies leaves no
-half-written mp4 behind, just a ``.part.mp4`` that the re-run overwrites.
+Encoded inside the env worker, frame by frame, so no raw frames cross process (or machine)
+boundaries: the worker hands the finished mp4's bytes back with the episode's last reply and
+the driver writes it under its final name. A worker that dies leaves no half-written video in
+the evaluation folder.
 """
 
 from __future__ import annotations

@@ -1,0 +1,206 @@
+"""Two evaluation folders on the same seeds, compared seed by seed: ``so101-sim compare A B``.
+
+Episodes depend only on their seed, so two policies run on the same seeds form pairs, and the
+seeds on which both succeed (or both fail) say nothing about which is better. The test is the
+exact McNemar test on the discordant seeds; the difference A - B gets Newcombe's paired score
+interval. Runs whose seeds or task differ are refused: their pairs would mean nothing.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from so101_sim.harness.results import INFO
+from so101_sim.stats import mcnemar_p_value, paired_difference_interval, wilson_interval
+
+JSON_NAME = "compare.json"
+MARKDOWN_NAME = "compare.md"
+
+
+@dataclass(frozen=True)
+class RunSide:
+    """What one evaluation folder says about itself and its episodes."""
+
+    path: Path
+    policy: str
+    fingerprint: str
+    task: str
+    task_sha256: str | None
+    images: str
+    success: dict[int, bool]  # seed -> success
+    actions_sha: dict[int, str | None]
+
+    @property
+    def n_success(self) -> int:
+        return sum(self.success.values())
+
+    def to_dict(self) -> dict[str, Any]:
+        k, n = self.n_success, len(self.success)
+        lo, hi = wilson_interval(k, n)
+        return {"run": str(self.path), "policy": self.policy, "policy_fingerprint":
+                self.fingerprint, "images": self.images, "n_success": k, "n_episodes": n,
+                "pc_success": 100.0 * k / n, "success_ci95": [100.0 * lo, 100.0 * hi]}
+
+
+def load_run(path: str | Path) -> RunSide:
+    """Read ``eval_info.json`` of a finished ``so101-sim eval`` folder."""
+    path = Path(path)
+    info_path = path / INFO
+    if not info_path.is_file():
+        raise FileNotFoundError(
+            f"{path} has no {INFO}: expected the --out folder of a finished `so101-sim eval` "
+            "(an interrupted one is finished with the same arguments plus --resume)")
+    try:
+        info = json.loads(info_path.read_text(encoding="utf-8"))
+        cfg, episodes = info["config"], info["per_episode"]
+        success = {int(e["seed"]): bool(e["success"]) for e in episodes}
+        shas = {int(e["seed"]): e.get("actions_sha") for e in episodes}
+        side = RunSide(path, str(cfg["policy"]), str(cfg.get("policy_fingerprint", "")),
+                       str(cfg["task"]), cfg.get("task_sha256"), str(cfg.get("images", "?")),
+                       success, shas)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{info_path} is not an so101-sim eval result ({exc!r}); expected "
+                         "the eval_info.json that `so101-sim eval` writes") from None
+    if not success:
+        raise ValueError(f"{info_path} holds no episodes; evaluate at least one")
+    return side
+
+
+def check_comparable(a: RunSide, b: RunSide) -> None:
+    """Refuse runs that are not pairs: another task (or task file), or other seeds."""
+    problems = []
+    if a.task != b.task:
+        problems.append(f"task: A ran {a.task!r}, B ran {b.task!r}")
+    elif a.task_sha256 and b.task_sha256 and a.task_sha256 != b.task_sha256:
+        problems.append(f"task file: both ran {a.task!r}, but its settings differ (task_sha256 "
+                        f"{a.task_sha256[:12]} vs {b.task_sha256[:12]}): it was edited between "
+                        "the runs")
+    if set(a.success) != set(b.success):
+        only_a, only_b = sorted(set(a.success) - set(b.success)), sorted(set(b.success)
+                                                                         - set(a.success))
+        problems.append(f"seeds: A has {len(a.success)} ({seed_ranges(a.success)}), B has "
+                        f"{len(b.success)} ({seed_ranges(b.success)})"
+                        + (f"; only in A: {seed_ranges(only_a)}" if only_a else "")
+                        + (f"; only in B: {seed_ranges(only_b)}" if only_b else ""))
+    if problems:
+        raise ValueError(f"cannot compare {a.path} (A) with {b.path} (B) seed by seed: "
+                         + "; ".join(problems) + ". Evaluate both with the same --task, "
+                         "--seed-start and --episodes")
+
+
+def compare_runs(run_a: str | Path, run_b: str | Path) -> dict[str, Any]:
+    """The paired comparison of two eval folders as a JSON-able dict (see module docstring)."""
+    a, b = load_run(run_a), load_run(run_b)
+    check_comparable(a, b)
+    return paired_result(a, b)
+
+
+def paired_result(a: RunSide, b: RunSide) -> dict[str, Any]:
+    seeds = sorted(a.success)
+    both = [s for s in seeds if a.success[s] and b.success[s]]
+    only_a = [s for s in seeds if a.success[s] and not b.success[s]]
+    only_b = [s for s in seeds if b.success[s] and not a.success[s]]
+    neither = len(seeds) - len(both) - len(only_a) - len(only_b)
+    n = len(seeds)
+    lo, hi = paired_difference_interval(len(both), len(only_a), len(only_b), neither)
+    same = sum(1 for s in seeds if a.actions_sha.get(s) and a.actions_sha[s] == b.actions_sha[s])
+    return {
+        "a": a.to_dict(), "b": b.to_dict(), "task": a.task, "n_seeds": n,
+        "seeds": seed_ranges(seeds),
+        "paired": {"both": len(both), "only_a": len(only_a), "only_b": len(only_b),
+                   "neither": neither},
+        "difference_pp": 100.0 * (len(only_a) - len(only_b)) / n,
+        "difference_ci95_pp": [100.0 * lo, 100.0 * hi],
+        "difference_interval": "Newcombe hybrid score interval for paired proportions "
+                               "(Newcombe 1998, method 10), 95%",
+        "mcnemar_p_two_sided": mcnemar_p_value(len(only_a), len(only_b)),
+        "test": "exact McNemar (binomial on the discordant seeds), two-sided",
+        "identical_rollouts": same,
+        "seeds_only_a": only_a, "seeds_only_b": only_b,
+    }
+
+
+def seed_ranges(seeds: Any, limit: int = 6) -> str:
+    """Seeds as compact ranges: "100000..100049, 100060"; long lists end in "... (N ranges)"."""
+    ordered = sorted(seeds)
+    runs: list[tuple[int, int]] = []
+    for s in ordered:
+        if runs and s == runs[-1][1] + 1:
+            runs[-1] = (runs[-1][0], s)
+        else:
+            runs.append((s, s))
+    text = [f"{lo}..{hi}" if hi > lo else f"{lo}" for lo, hi in runs[:limit]]
+    more = f", ... ({len(runs)} ranges)" if len(runs) > limit else ""
+    return ", ".join(text) + more if text else "none"
+
+
+def summary_lines(r: dict[str, Any]) -> list[str]:
+    """The console summary: each run, the paired table, the difference and the test."""
+    lines = []
+    for key in ("a", "b"):
+        s = r[key]
+        lines.append(f"{key.upper()}: {s['policy']}: success {s['n_success']}/{s['n_episodes']}"
+                     f" = {s['pc_success']:.1f}% (95% CI {s['success_ci95'][0]:.1f}-"
+                     f"{s['success_ci95'][1]:.1f}); images: {s['images']} [{s['run']}]")
+    p = r["paired"]
+    lo, hi = r["difference_ci95_pp"]
+    lines.append(f"paired on {r['n_seeds']} seeds of {r['task']} ({r['seeds']}): both succeed "
+                 f"{p['both']}, only A {p['only_a']}, only B {p['only_b']}, neither "
+                 f"{p['neither']}")
+    lines.append(f"A - B = {r['difference_pp']:+.1f} points (95% CI {lo:+.1f} to {hi:+.1f}, "
+                 f"Newcombe paired score); exact McNemar p = {r['mcnemar_p_two_sided']:.4g} "
+                 f"(two-sided): {verdict(r)}")
+    return lines
+
+
+def verdict(r: dict[str, Any], alpha: float = 0.05) -> str:
+    if r["mcnemar_p_two_sided"] >= alpha:
+        return f"no significant difference at {alpha:g}"
+    better = "A" if r["difference_pp"] > 0 else "B"
+    return f"{better} is significantly better at {alpha:g}"
+
+
+def markdown(r: dict[str, Any]) -> str:
+    p, a, b = r["paired"], r["a"], r["b"]
+    lo, hi = r["difference_ci95_pp"]
+    rows = [f"| {k.upper()} | {s['policy']} (`{s['policy_fingerprint']}`) | {s['images']} | "
+            f"{s['n_success']}/{s['n_episodes']} = {s['pc_success']:.1f}% | "
+            f"{s['success_ci95'][0]:.1f}-{s['success_ci95'][1]:.1f}% | `{s['run']}` |"
+            for k, s in (("a", a), ("b", b))]
+    lines = [
+        f"# Paired comparison: {a['policy']} (A) vs {b['policy']} (B)", "",
+        f"Task `{r['task']}`, the same {r['n_seeds']} seeds ({r['seeds']}).", "",
+        "| run | policy | images | success | 95% Wilson | folder |",
+        "| --- | --- | --- | --- | --- | --- |", *rows, "",
+        "## Seed by seed", "",
+        "| | B succeeded | B failed |", "| --- | --- | --- |",
+        f"| **A succeeded** | {p['both']} | {p['only_a']} |",
+        f"| **A failed** | {p['only_b']} | {p['neither']} |", "",
+        f"- **A - B = {r['difference_pp']:+.1f} points**, 95% interval {lo:+.1f} to {hi:+.1f} "
+        f"({r['difference_interval']})",
+        f"- exact McNemar test on the {p['only_a'] + p['only_b']} discordant seeds: "
+        f"p = {r['mcnemar_p_two_sided']:.4g} (two-sided): {verdict(r)}",
+        f"- identical rollouts (same executed actions): {r['identical_rollouts']} seeds",
+        f"- seeds only A solved: {_seed_list(r['seeds_only_a'])}",
+        f"- seeds only B solved: {_seed_list(r['seeds_only_b'])}",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def _seed_list(seeds: list[int], limit: int = 30) -> str:
+    if not seeds:
+        return "none"
+    return ", ".join(map(str, seeds[:limit])) + (f", ... ({len(seeds)})" if len(seeds) > limit
+                                                  else "")
+
+
+def write_comparison(r: dict[str, Any], out_dir: str | Path) -> tuple[Path, Path]:
+    """compare.json and compare.md in `out_dir`; returns their paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / JSON_NAME).write_text(json.dumps(r, indent=2) + "\n")
+    (out / MARKDOWN_NAME).write_text(markdown(r))
+    return out / JSON_NAME, out / MARKDOWN_NAME

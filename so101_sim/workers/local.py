@@ -1,0 +1,217 @@
+"""The local backend: one forkserver process per worker, method calls over a pipe.
+
+Why our own processes rather than Gymnasium's ``AsyncVectorEnv`` or a ``ProcessPoolExecutor``:
+a worker keeps its env (and GL context) for the whole run, a call can be a whole action chunk
+or a whole episode, and a worker that dies or hangs is replaced on its own while the others
+keep their work. Workers start with ``forkserver`` (never ``fork``: the parent may hold torch's
+threads or a GL context) and build their service after they start. A worker ignores Ctrl-C
+(the parent decides what to keep) and exits when the parent's end of its pipe closes, so a
+parent killed with SIGKILL leaves no worker behind.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing as mp
+import os
+import signal
+import socket
+import time
+import traceback
+from collections import deque
+from collections.abc import Callable
+from multiprocessing.connection import Connection, wait
+from typing import Any
+
+from so101_sim.workers import PoolInfo, Reply, WorkerPool
+
+
+def _worker_main(conn: Connection, factory: Callable[[], Any]) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group
+    with contextlib.suppress(EOFError, BrokenPipeError, ConnectionResetError):
+        _serve(conn, factory)
+
+
+def _serve(conn: Connection, factory: Callable[[], Any]) -> None:
+    try:
+        service = factory()
+    except Exception as exc:
+        conn.send(("fatal", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+        return
+    conn.send(("ready", socket.gethostname()))
+    try:
+        while (msg := conn.recv()) is not None:
+            method, args = msg
+            try:
+                conn.send(("ok", getattr(service, method)(*args)))
+            except Exception as exc:
+                conn.send(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+    finally:
+        close = getattr(service, "close", None)
+        if close is not None:
+            with contextlib.suppress(Exception):
+                close()
+
+
+class LocalPool(WorkerPool):
+    """N forkserver processes, one service each."""
+
+    def __init__(self, factory: Callable[[], Any], n: int, *, name: str,
+                 preload: tuple[str, ...] = (), timeout_s: float = 600.0,
+                 start_timeout_s: float = 300.0) -> None:
+        self.factory, self.name = factory, name
+        self.timeout_s, self.start_timeout_s = timeout_s, start_timeout_s
+        self._ctx = mp.get_context("forkserver")
+        if preload:  # the fork server imports these once; each worker forks from it ready
+            self._ctx.set_forkserver_preload(list(preload))
+        self._procs: list[Any] = [None] * n
+        self._conns: list[Connection | None] = [None] * n
+        self._calls: list[deque[tuple[str, tuple]]] = [deque() for _ in range(n)]
+        self._since: dict[int, float] = {}  # worker -> when its oldest pending call started
+        self._restarts = 0
+        try:
+            for i in range(n):
+                self._spawn(i)
+            for i in range(n):
+                self._await_ready(i)
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def size(self) -> int:
+        return len(self._procs)
+
+    def pid(self, i: int) -> int | None:
+        return self._procs[i].pid if self._procs[i] is not None else None
+
+    def _spawn(self, i: int) -> None:
+        parent, child = self._ctx.Pipe()
+        proc = self._ctx.Process(target=_worker_main, args=(child, self.factory),
+                                 name=f"{self.name}-{i}", daemon=True)
+        proc.start()
+        child.close()
+        self._procs[i], self._conns[i] = proc, parent
+
+    def _await_ready(self, i: int) -> None:
+        conn, proc = self._conns[i], self._procs[i]
+        ready = wait([conn, proc.sentinel], timeout=self.start_timeout_s)
+        kind, payload = "fatal", f"not ready after {self.start_timeout_s:.0f} s"
+        if conn in ready:
+            try:
+                kind, payload = conn.recv()
+            except EOFError:
+                payload = f"exited with code {proc.exitcode} while starting"
+        elif ready:
+            proc.join(timeout=5)
+            payload = f"exited with code {proc.exitcode} while starting"
+        if kind != "ready":
+            raise RuntimeError(f"worker {self.name}-{i} could not start its "
+                               f"{type(self.factory).__name__}: {payload}")
+
+    def restart(self, worker: int) -> None:
+        self._kill(worker)
+        self._calls[worker].clear()
+        self._since.pop(worker, None)
+        self._restarts += 1
+        self._spawn(worker)
+        self._await_ready(worker)
+
+    def submit(self, worker: int, method: str, *args: Any) -> None:
+        if not self._calls[worker]:
+            self._since[worker] = time.monotonic()
+        self._calls[worker].append((method, args))
+        with contextlib.suppress(BrokenPipeError, OSError):  # gone: collect() reports it
+            self._conns[worker].send((method, args))
+
+    def pending(self, worker: int) -> int:
+        return len(self._calls[worker])
+
+    def collect(self, wait_all: bool = False) -> list[Reply]:
+        out: list[Reply] = []
+        while self.busy and (wait_all or not out):
+            handles: dict[Any, int] = {}
+            for i in self._since:
+                handles[self._conns[i]] = i
+                handles[self._procs[i].sentinel] = i
+            deadline = min(self._since.values()) + self.timeout_s
+            ready = wait(list(handles), timeout=max(0.0, deadline - time.monotonic()))
+            answered: set[int] = set()
+            for h in ready:  # replies first: a worker may exit right after its last reply
+                i = handles[h]
+                if h is self._conns[i] and i not in answered:
+                    answered.add(i)
+                    out += self._receive(i)
+            for h in ready:
+                i = handles[h]
+                if i not in answered and i in self._since:
+                    answered.add(i)
+                    out += self._died(i, f"it exited with code {self._procs[i].exitcode}")
+            now = time.monotonic()
+            for i, t in list(self._since.items()):
+                if now - t > self.timeout_s:
+                    out += self._died(i, f"no reply within {self.timeout_s:.0f} s")
+        return out
+
+    def _receive(self, i: int) -> list[Reply]:
+        """Every reply worker `i` has sent so far (at least one is waiting)."""
+        out: list[Reply] = []
+        conn = self._conns[i]
+        while self._calls[i]:
+            try:
+                if out and not conn.poll():
+                    break
+                kind, payload = conn.recv()
+            except (EOFError, OSError):
+                return out + self._died(i, "its pipe closed")
+            method, args = self._calls[i].popleft()
+            if kind == "ok":
+                out.append(Reply(i, method, args, value=payload))
+            else:
+                out.append(Reply(i, method, args, error=str(payload)))
+            self._since[i] = time.monotonic()
+        if not self._calls[i]:
+            self._since.pop(i, None)
+        return out
+
+    def _died(self, i: int, why: str) -> list[Reply]:
+        lost = list(self._calls[i])
+        msg = f"worker {self.name}-{i} (pid {self.pid(i)}) died: {why}"
+        self.restart(i)
+        return [Reply(i, method, args, died=msg) for method, args in lost]
+
+    def info(self) -> PoolInfo:
+        return PoolInfo("local", self.size, [socket.gethostname()] * self.size,
+                        restarts=self._restarts, start_s=self.start_s)
+
+    def _kill(self, i: int) -> None:
+        proc, conn = self._procs[i], self._conns[i]
+        if conn is not None:
+            conn.close()
+        if proc is not None:
+            if proc.is_alive():
+                proc.kill()
+            proc.join(timeout=5)
+        self._procs[i], self._conns[i] = None, None
+
+    def close(self) -> None:
+        idle = [i for i, p in enumerate(self._procs)
+                if p is not None and p.is_alive() and not self._calls[i]]
+        for i in idle:
+            with contextlib.suppress(BrokenPipeError, OSError):
+                self._conns[i].send(None)
+        deadline = time.monotonic() + 5
+        for i in idle:
+            self._procs[i].join(timeout=max(0.0, deadline - time.monotonic()))
+        for i in range(self.size):
+            self._kill(i)
+            self._calls[i].clear()
+        self._since.clear()
+
+
+def cpu_count() -> int:
+    """CPUs this process may run on (its affinity mask), not all the machine has."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1

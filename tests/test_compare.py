@@ -1,0 +1,140 @@
+"""Paired comparisons: the statistics, `so101-sim compare` and `testing.assert_not_worse`."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from so101_sim.cli import main
+from so101_sim.harness import PolicyInfo, StepPolicy, evaluate
+from so101_sim.harness.compare import compare_runs, seed_ranges
+from so101_sim.stats import (
+    episodes_needed,
+    episodes_needed_measured,
+    mcnemar_p_value,
+    paired_difference_interval,
+    paired_episodes_needed,
+    paired_power,
+)
+from so101_sim.task import load_task
+from so101_sim.testing import assert_not_worse
+
+
+def test_mcnemar_matches_brute_force():
+    def tail(k: int, m: int) -> float:
+        return sum(math.comb(m, i) for i in range(k + 1)) / 2 ** m
+
+    assert mcnemar_p_value(6, 16) == pytest.approx(2 * tail(6, 22), rel=1e-12)  # 0.0525
+    assert mcnemar_p_value(6, 16, alternative="less") == pytest.approx(tail(6, 22), rel=1e-12)
+    assert mcnemar_p_value(16, 6, alternative="less") == pytest.approx(tail(16, 22), rel=1e-12)
+    assert mcnemar_p_value(0, 0) == 1.0 and mcnemar_p_value(5, 5) == 1.0
+    assert mcnemar_p_value(0, 8, alternative="less") == pytest.approx(0.5 ** 8)
+    with pytest.raises(ValueError, match="alternative"):
+        mcnemar_p_value(1, 2, alternative="greater")
+
+
+def test_newcombe_paired_interval_matches_published_value():
+    # Cavo et al. (2012) as in Fagerland, Lydersen & Laake, "Statistical Analysis of
+    # Contingency Tables", ch. 8: Newcombe square-and-add -0.0621 (-0.1186 to -0.0046).
+    lo, hi = paired_difference_interval(59, 6, 16, 80)
+    assert (lo, hi) == pytest.approx((-0.1186, -0.0046), abs=5e-5)
+    lo, hi = paired_difference_interval(30, 0, 0, 20)  # identical runs: contains 0, symmetric
+    assert lo < 0 < hi and lo == pytest.approx(-hi)
+    assert paired_difference_interval(50, 0, 0, 0)[0] >= -1.0
+
+
+def test_paired_needs_fewer_episodes_than_a_measured_baseline():
+    # The README's table: drop 0.90 -> 0.80, alpha 0.01, power 0.8.
+    assert episodes_needed(0.90, 0.80) == 122
+    assert episodes_needed_measured(0.90, 0.80) == 389
+    assert paired_episodes_needed(0.90, 0.80, discordant=0.10) == 90
+    assert paired_episodes_needed(0.90, 0.80, discordant=0.20) == 208
+    assert paired_episodes_needed(0.90, 0.80) == 272  # independent outcomes
+    n = paired_episodes_needed(0.80, 0.60, discordant=0.2)
+    assert paired_power(n, 0.80, 0.60, 0.2) >= 0.8 > paired_power(n - 1, 0.80, 0.60, 0.2)
+    with pytest.raises(ValueError, match=r"discordant=0\.05"):
+        paired_episodes_needed(0.9, 0.8, discordant=0.05)  # fewer disagreements than the drop
+
+
+def _fake_run(root: Path, name: str, outcomes: dict[int, bool], task: str = "pick_place",
+              sha: str = "t" * 64) -> Path:
+    run = root / name
+    run.mkdir(parents=True)
+    info = {"per_episode": [{"seed": s, "success": ok, "actions_sha": f"{name}{s}"}
+                            for s, ok in outcomes.items()],
+            "config": {"policy": name, "policy_fingerprint": name[:4], "task": task,
+                       "task_sha256": sha, "images": f"direct: rendered at 60x80 ({name})"}}
+    (run / "eval_info.json").write_text(json.dumps(info))
+    return run
+
+
+def test_compare_cli_writes_json_and_markdown(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    seeds = range(100_000, 100_040)
+    a_ok = {s: bool(rng.random() < 0.8) for s in seeds}
+    b_ok = {s: a_ok[s] and bool(rng.random() < 0.7) for s in seeds}  # B loses some of A's
+    a = _fake_run(tmp_path, "cand", a_ok)
+    b = _fake_run(tmp_path, "base", b_ok)
+    assert main(["compare", str(a), str(b), "--out", str(tmp_path / "cmp")]) == 0
+    out = capsys.readouterr().out
+    r = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    p = r["paired"]
+    assert p["only_b"] == 0 and p["only_a"] == sum(a_ok.values()) - sum(b_ok.values())
+    assert sum(p.values()) == 40 and r["seeds"] == "100000..100039"
+    assert r["mcnemar_p_two_sided"] == pytest.approx(mcnemar_p_value(p["only_a"], 0))
+    lo, hi = r["difference_ci95_pp"]
+    assert lo <= r["difference_pp"] <= hi
+    md = (tmp_path / "cmp" / "compare.md").read_text()
+    for text in ("McNemar", "Newcombe", "direct: rendered at 60x80 (cand)", "| **A failed** |"):
+        assert text in md
+    assert "A: cand" in out and "images: direct: rendered at 60x80 (base)" in out
+    assert "exact McNemar p" in out and "Newcombe" in out
+
+
+def test_compare_refuses_other_seeds_or_task(tmp_path, capsys):
+    a = _fake_run(tmp_path, "a", dict.fromkeys(range(100_000, 100_010), True))
+    b = _fake_run(tmp_path, "b", dict.fromkeys(range(100_000, 100_012), True))
+    c = _fake_run(tmp_path, "c", dict.fromkeys(range(100_000, 100_010), True), task="stack")
+    d = _fake_run(tmp_path, "d", dict.fromkeys(range(100_000, 100_010), True), sha="u" * 64)
+    assert main(["compare", str(a), str(b)]) == 2
+    err = capsys.readouterr().err
+    assert "seeds: A has 10 (100000..100009), B has 12 (100000..100011)" in err
+    assert "only in B: 100010..100011" in err and "--seed-start" in err
+    with pytest.raises(ValueError, match="task: A ran 'pick_place', B ran 'stack'"):
+        compare_runs(a, c)
+    with pytest.raises(ValueError, match=r"task file: .* edited between the runs"):
+        compare_runs(a, d)
+    with pytest.raises(FileNotFoundError, match=r"no eval_info\.json"):
+        compare_runs(a, tmp_path)
+    assert seed_ranges([5, 1, 2, 3, 9]) == "1..3, 5, 9"
+
+
+class _Rest:
+    """Holds the rest pose: never grasps, so it fails every seed the expert solves."""
+
+    def __init__(self) -> None:
+        self.rest = np.asarray(load_task("pick_place").rest_pose, dtype=np.float32)
+
+    def reset(self, seed: int) -> None:
+        pass
+
+    def select_action(self, obs: dict) -> np.ndarray:
+        return self.rest
+
+
+def test_assert_not_worse_on_the_baseline_seeds(tmp_path, capsys):
+    base = tmp_path / "expert"
+    evaluate("expert", episodes=8, n_envs=1, out_dir=base, videos=0, progress=False,
+             report=False, log=lambda _: None)
+    check = assert_not_worse("expert", base, n_envs=1)  # the same policy: identical rollouts
+    assert check.passed and check.p_value == 1.0
+    assert check.comparison["identical_rollouts"] == 8
+    assert "one-sided exact McNemar p = 1" in capsys.readouterr().out
+
+    rest = StepPolicy(_Rest, PolicyInfo(name="rest", fingerprint="rest"))
+    with pytest.raises(pytest.fail.Exception, match="SIGNIFICANTLY WORSE"):
+        assert_not_worse(rest, base, n_envs=1)  # 0/8 vs 8/8: p = 0.5**8 < 0.01

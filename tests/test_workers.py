@@ -1,0 +1,128 @@
+"""The worker seam (so101_sim.workers) with a trivial service: replies, errors, a worker that
+dies, and the backend checks. The Ray backend runs the same checks in test_ray_backend.py."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from so101_sim.workers import check_backend, start_pool
+
+
+class Counter:
+    """A service: counts calls, can raise, can report its pid, can die."""
+
+    def __init__(self, start: int = 0) -> None:
+        self.n = start
+
+    def add(self, k: int) -> int:
+        self.n += k
+        return self.n
+
+    def fail(self) -> None:
+        raise ValueError("asked to fail")
+
+    def pid(self) -> int:
+        return os.getpid()
+
+    def sleep(self, s: float) -> float:
+        time.sleep(s)
+        return s
+
+
+class CounterFactory:
+    def __init__(self, start: int = 0) -> None:
+        self.start = start
+
+    def __call__(self) -> Counter:
+        return Counter(self.start)
+
+
+class BrokenFactory:
+    def __call__(self) -> Counter:
+        raise OSError("no GL here")
+
+
+def check_pool_contract(pool) -> None:
+    """What every backend must do; shared with the Ray tests."""
+    assert pool.size == 2
+    for k in (1, 2, 3):  # calls on one worker are answered in order
+        pool.submit(0, "add", k)
+    pool.submit(1, "fail")
+    assert pool.pending(0) == 3 and pool.busy == 4
+    assert pool.least_busy() == 1
+    replies = pool.collect(wait_all=True)
+    assert pool.busy == 0
+    values = [r.value for r in replies if r.worker == 0]
+    assert values == [11, 13, 16]
+    (err,) = [r for r in replies if r.worker == 1]
+    assert err.failed and "ValueError: asked to fail" in err.error and err.died is None
+    pool.submit(1, "add", 5)  # still usable after an error
+    (r,) = pool.collect()
+    assert r.value == 15 and r.args == (5,) and r.method == "add"
+
+
+def test_local_pool_contract() -> None:
+    with start_pool(CounterFactory(10), 2, name="test-counter") as pool:
+        check_pool_contract(pool)
+        assert pool.info().to_dict()["backend"] == "local"
+
+
+def test_local_pool_replaces_a_dead_worker() -> None:
+    with start_pool(CounterFactory(), 2, name="test-counter") as pool:
+        pool.submit(0, "pid")
+        (r,) = pool.collect()
+        pool.submit(0, "sleep", 30.0)
+        pool.submit(0, "add", 1)  # queued behind the sleep: lost with the worker too
+        os.kill(r.value, signal.SIGKILL)
+        replies = pool.collect(wait_all=True)
+        assert [(x.method, bool(x.died)) for x in replies] == [("sleep", True), ("add", True)]
+        assert "died" in replies[0].died
+        pool.submit(0, "add", 2)  # the replacement is a fresh service
+        assert pool.collect()[0].value == 2
+        assert pool.info().restarts == 1
+
+
+def test_local_pool_hung_worker_times_out() -> None:
+    with start_pool(CounterFactory(), 1, name="test-counter", timeout_s=1.0) as pool:
+        pool.submit(0, "sleep", 60.0)
+        t = time.monotonic()
+        (r,) = pool.collect()
+        assert r.died and "no reply within 1 s" in r.died and time.monotonic() - t < 30
+
+
+def test_local_pool_start_failure_is_named() -> None:
+    with pytest.raises(RuntimeError, match=r"could not start its BrokenFactory.*no GL here"):
+        start_pool(BrokenFactory(), 1, name="test-broken")
+
+
+def test_backend_arguments_are_checked() -> None:
+    with pytest.raises(ValueError, match=r"backend='slurm' is not known; expected one of"):
+        check_backend("slurm", None)
+    with pytest.raises(ValueError, match="--ray-address auto only applies with --backend ray"):
+        check_backend("local", "auto")
+
+
+def test_without_ray_backend_ray_says_how_to_install(tmp_path) -> None:
+    code = ("import sys; sys.modules['ray'] = None\n"
+            "from so101_sim.cli import main\n"
+            f"sys.exit(main(['eval', '--policy', 'expert', '--episodes', '1', '--out', "
+            f"{str(tmp_path / 'run')!r}, '--backend', 'ray']))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert "--backend ray needs Ray, which is not installed" in out.stderr
+    assert "pip install 'so101-sim[ray]'" in out.stderr
+
+
+def test_import_so101_sim_loads_no_ray_or_torch() -> None:
+    code = ("import sys, so101_sim, so101_sim.workers, so101_sim.recording, so101_sim.harness; "
+            "print(sorted(m for m in ('ray', 'torch') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=300).stdout
+    assert out.strip() == "[]"
