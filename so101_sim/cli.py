@@ -123,9 +123,10 @@ def _eval(args: argparse.Namespace) -> int:
                  seed_start=args.seed_start, out_dir=args.out, videos=args.videos,
                  image_size=args.image_size, resume=args.resume,
                  allow_train_seeds=args.allow_train_seeds, backend=args.backend,
-                 ray_address=args.ray_address)
+                 ray_address=args.ray_address, save_rollouts=args.save_rollouts)
     except KeyboardInterrupt:
-        print("so101-sim eval: interrupted; every finished episode is in episodes.jsonl "
+        saved = " and --save-rollouts" if args.save_rollouts else ""
+        print(f"so101-sim eval: interrupted; every finished episode is in episodes.jsonl{saved} "
               "(finish with the same arguments plus --resume)", file=sys.stderr)
         return 130
     return 0
@@ -346,6 +347,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="feed env cameras (front, side) to policy camera inputs named after "
                          "another rig, e.g. top=front,wrist=side; the summary and report "
                          "state the mapping")
+    ev.add_argument("--save-rollouts", default=None, metavar="DIR",
+                    help="also write every evaluated episode to DIR as a LeRobotDataset (both "
+                         "cameras as video at the render size, executed actions, seed, "
+                         "success, failure mode); renders every step, so slower")
     add_backend_args(ev, "--n-envs")
     ev.set_defaults(func=_eval)
 

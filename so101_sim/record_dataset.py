@@ -36,7 +36,6 @@ from so101_sim.recording import (
     DEFAULT_VCODEC,
     ROBOT_TYPE,
     VCODECS,
-    VIDEO_KEYS,
     dataset_features,
     stored_seeds,
 )
@@ -69,23 +68,30 @@ class WorkerVideos:
         self.ready = None
 
 
+def _video_info(features: dict[str, Any]) -> dict[str, Any]:
+    """The ``info`` of the first camera ({} before the first episode has videos)."""
+    video = next((f for f in features.values() if f.get("dtype") == "video"), {})
+    return video.get("info") or {}
+
+
 def codec_of(features: dict[str, Any]) -> str | None:
     """Codec a dataset's videos were written with (None before the first episode)."""
-    info = features.get(VIDEO_KEYS[0], {}).get("info") or {}
+    info = _video_info(features)
     codec = info.get("video.codec")
     return {"av1": "libsvtav1"}.get(codec, codec)
 
 
-def _features(root: Path) -> dict[str, Any]:
+def info_features(root: Path) -> dict[str, Any]:
+    """The features in a dataset's meta/info.json ({} before it exists)."""
     path = root / "meta" / "info.json"
     return json.loads(path.read_text()).get("features", {}) if path.exists() else {}
 
 
-def _encoder(vcodec: str, features: dict[str, Any] | None = None) -> Any:
+def encoder_config(vcodec: str, features: dict[str, Any] | None = None) -> Any:
     """lerobot encoder config: the dataset's own settings when it has videos, else ours."""
     from lerobot.configs.video import RGBEncoderConfig
 
-    info = (features or {}).get(VIDEO_KEYS[0], {}).get("info") or {}
+    info = _video_info(features or {})
     if info.get("video.codec"):
         return RGBEncoderConfig.from_video_info(info)
     return RGBEncoderConfig(**VCODECS[vcodec])
@@ -106,7 +112,7 @@ def _resume_settings(root: Path, side: dict[str, Any], image_size: tuple[int, in
     if old_expert != expert:
         raise ValueError(f"{root} was recorded with expert options {old_expert}, not {expert}; "
                          "resume with the same --recover / --grasp-clearance")
-    codec = side.get("vcodec") or codec_of(_features(root)) or vcodec or DEFAULT_VCODEC
+    codec = side.get("vcodec") or codec_of(info_features(root)) or vcodec or DEFAULT_VCODEC
     if vcodec is not None and vcodec != codec:
         raise ValueError(f"{root} holds {codec} videos; resume with --vcodec {codec} or "
                          "without --vcodec (videos of one dataset share a codec)")
@@ -166,7 +172,7 @@ class Opened:
         for i in range(entry["steps"]):
             frame = {k: v[i] for k, v in cols.items()}
             frame["task"] = description
-            for key in VIDEO_KEYS:
+            for key in self.ds.meta.video_keys:
                 frame[key] = blank
             self.ds.add_frame(frame)
         ready = {}
@@ -246,7 +252,7 @@ def open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
         tried = [int(s) for s in side.get("tried", [])] + stored_seeds(root)
         repo_id = side.get("repo_id", repo_id)
         task_arg = side.get("task", task_arg)
-        encoder = _encoder(codec, _features(root))
+        encoder = encoder_config(codec, info_features(root))
         failures = dict(side.get("failures", {}))
         next_seed = max([seed_start - 1, *tried]) + 1
         fresh = False
@@ -254,7 +260,7 @@ def open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
         if root.exists():
             root.rmdir()  # empty: lerobot insists on creating the folder itself
         codec = vcodec or DEFAULT_VCODEC
-        encoder = _encoder(codec)
+        encoder = encoder_config(codec)
         ds = LeRobotDataset.create(repo_id=repo_id, fps=30, root=root, robot_type=ROBOT_TYPE,
                                    features=dataset_features(image_size, dart_noise > 0),
                                    use_videos=True, rgb_encoder=encoder)

@@ -8,6 +8,7 @@ cluster test is in test_ray_cluster.py.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import signal
@@ -89,6 +90,18 @@ def test_diffusion_policy_on_ray_matches_local(tmp_path) -> None:
             for backend, n in (("local", 1), ("ray", 3))}
     assert _outcomes(runs["local"]) == _outcomes(runs["ray"])
     assert len({e["actions_sha"] for e in runs["ray"]["per_episode"]}) == 4
+
+
+def test_save_rollouts_on_ray(expert_local, tmp_path) -> None:
+    """The taped episodes come back from the actors as bytes: same dataset as local."""
+    res = evaluate("expert", episodes=2, n_envs=2, videos=0, backend="ray", image_size=SMALL,
+                   out_dir=tmp_path / "run", save_rollouts=tmp_path / "ds", **_quiet())
+    assert _outcomes(res) == _outcomes(expert_local)[:2]
+    assert stored_seeds(tmp_path / "ds") == [100000, 100001]
+    cols = columns_by_seed(tmp_path / "ds", ("action",))
+    for e in res["per_episode"]:
+        digest = hashlib.sha256(cols[e["seed"]]["action"].astype(np.float32).tobytes())
+        assert digest.hexdigest()[:16] == e["actions_sha"]
 
 
 def _our_actor_pids() -> list[int]:

@@ -3,7 +3,9 @@
 A worker runs a whole action chunk per call and renders only the frames the policy will look
 at (the last ``n_obs_steps`` of a chunk, or every frame of an episode being filmed). A filmed
 episode is encoded inside the worker and comes back as mp4 bytes with the episode's last
-reply, so the driver writes every file itself, wherever the worker ran.
+reply, so the driver writes every file itself, wherever the worker ran. With a ``TapeSpec``
+(``eval --save-rollouts``) every step is rendered and taped (``rollout_tape``); the episode
+comes back as ``rollout`` in its last reply. Without one the loop is unchanged.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from so101_sim.harness.rollout_tape import TapeSpec
 from so101_sim.task import TaskSpec
 
 
@@ -29,6 +32,7 @@ class EnvWorkerConfig:
     cameras: tuple[str, ...]  # cameras in the policy's observations
     env_state: bool  # include environment_state in the policy's observations
     n_obs_steps: int
+    rollout: TapeSpec | None = None  # tape every episode (eval --save-rollouts)
 
     def __call__(self) -> EnvWorker:
         """Build the worker's env (and its GL context) where this is called."""
@@ -48,6 +52,11 @@ class EnvWorker:
         self.steps = 0
         self.digest = hashlib.sha256()
         self._tmp: Path | None = None  # made when the first filmed episode starts
+        self.tape: Any = None
+        if cfg.rollout is not None:
+            from so101_sim.harness.rollout_tape import RolloutTape
+
+            self.tape = RolloutTape(cfg.rollout, cfg.task.fps)
 
     def _observe(self, with_pixels: bool) -> dict[str, Any]:
         env, cfg = self.env, self.cfg
@@ -67,6 +76,8 @@ class EnvWorker:
             reply = fn(*args)
         except BaseException:
             self._drop_video()
+            if self.tape is not None:
+                self.tape.cancel()
             raise
         reply["physics_s"] = self.env.time_physics - t_phys
         reply["render_s"] = self.env.time_render - t_rend
@@ -83,6 +94,8 @@ class EnvWorker:
         self.env.reset(seed=seed)
         self.steps = 0
         self.digest = hashlib.sha256()
+        if self.tape is not None:
+            self.tape.start(seed, self.env.initial_cube_pose)
         if film:
             if self._tmp is None:
                 self._tmp = Path(tempfile.mkdtemp(prefix="so101-eval-video-"))
@@ -97,14 +110,20 @@ class EnvWorker:
         return self._timed(self._act, actions)
 
     def _act(self, actions: np.ndarray) -> dict[str, Any]:
-        env, n, n_keep = self.env, len(actions), self.cfg.n_obs_steps
+        env, n, n_keep, tape = self.env, len(actions), self.cfg.n_obs_steps, self.tape
         rewards: list[float] = []
         history: list[dict[str, Any]] = []
         done, info = False, {}
         for i, action in enumerate(actions):
+            if tape is not None:  # the frame and state this step starts from
+                frame, state = env.render(), env.agent_pos()
             _, reward, terminated, truncated, info = env.step(action)
             rewards.append(float(reward))
             done = terminated or truncated
+            if tape is not None:  # the env clips targets to the joint limits: store that
+                executed = np.clip(np.asarray(action, np.float64), env.action_low,
+                                   env.action_high)
+                tape.add(frame, state, executed, reward, info.get("is_success", False), done)
             if self.video is not None:
                 self.video.add(env.render(), self.steps + i + 1)
             if done:
@@ -122,6 +141,8 @@ class EnvWorker:
             reply["outcome"] = ("success" if mode is None and reply["success"]
                                 else (mode or "failed"))
             reply["actions_sha"] = self.digest.hexdigest()[:16]
+            if tape is not None:
+                reply["rollout"] = tape.finish(reply["success"], mode)
             if self.video is not None:
                 path = self.video.finish(reply["outcome"], self.steps)
                 self.video = None
@@ -136,6 +157,8 @@ class EnvWorker:
 
     def close(self) -> None:
         self._drop_video()
+        if self.tape is not None:
+            self.tape.close()
         self.env.close()
         if self._tmp is not None:
             shutil.rmtree(self._tmp, ignore_errors=True)

@@ -8,7 +8,8 @@ An episode's outcome depends only on its seed, the policy and the task: episodes
 their seed, the policy's per-episode state is per slot and seeded by the episode seed, and the
 lerobot adapter keeps batched inference bitwise independent of which envs share a batch.
 The workers come from ``so101_sim.workers`` (local processes or Ray actors): the loop below
-is the same on both, and so are the results.
+is the same on both, and so are the results. ``save_rollouts`` also writes every episode into a
+LeRobotDataset (``so101_sim.harness.rollouts``); without it nothing here changes.
 """
 
 from __future__ import annotations
@@ -98,6 +99,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str = "pick_place", episodes: in
              allow_train_seeds: bool = False, worker_timeout_s: float = 600.0,
              max_retries: int = 2, progress: bool = True, report: bool = True,
              backend: str = "local", ray_address: str | None = None,
+             save_rollouts: str | Path | None = None, checkpoint_every: int = 50,
              log: Callable[[str], None] = print) -> dict[str, Any]:
     """Evaluate `policy` on `episodes` seeds from `seed_start`; return the eval_info dict.
 
@@ -107,6 +109,9 @@ def evaluate(policy: EvalPolicy | str, *, task: str = "pick_place", episodes: in
     `backend`: where the envs run, ``"local"`` (processes here) or ``"ray"`` (Ray actors; a
     local Ray runtime, or the cluster at `ray_address`: ``"auto"`` or ``host:port``). Results
     per seed do not depend on it; policy forwards always run batched in this process.
+    `save_rollouts`: a folder that gets every evaluated episode as a LeRobotDataset, written in
+    seed order and checkpointed every `checkpoint_every` episodes (``harness.rollouts``);
+    every step is then rendered, so the run is slower, but its results are the same.
     """
     spec = load_task(task)
     if not isinstance(policy, EvalPolicy):
@@ -132,8 +137,25 @@ def evaluate(policy: EvalPolicy | str, *, task: str = "pick_place", episodes: in
         "render_size": list(rendering.render_size),
         "policy_image_size": list(rendering.input_size) if rendering.input_size else None,
     }
+    if save_rollouts is not None:  # absolute: a resume from another folder still matches
+        identity["save_rollouts"] = str(Path(save_rollouts).expanduser().resolve())
+    if resume and run.config_path.exists():
+        from so101_sim.harness.rollouts import check_resume_target
+
+        check_resume_target(run.path, run.config_path, identity.get("save_rollouts"))
+    sink = None
+    if save_rollouts is not None:  # checked before the run folder is touched
+        from so101_sim.harness.rollouts import rollout_sink
+
+        sink = rollout_sink(
+            save_rollouts, resume=resume, spec=spec, image_size=tuple(rendering.render_size),
+            task_arg=str(Path(task).resolve()) if Path(str(task)).suffix == ".toml"
+            else spec.name, seeds=list(range(seed_start, seed_start + episodes)),
+            eval_out=run.path, identity=identity, checkpoint_every=checkpoint_every)
     done = {s: r for s, r in run.prepare(identity, resume).items()
             if seed_start <= s < seed_start + episodes}
+    if sink is not None:
+        done = _open_rollouts(sink, resume, done, save_rollouts, log)
     todo = deque(s for s in range(seed_start, seed_start + episodes) if s not in done)
     log(f"so101-sim eval: {info.name} on {spec.name}, seeds {seed_start}.."
         f"{seed_start + episodes - 1} ({len(done)} done, {len(todo)} to run), "
@@ -142,10 +164,16 @@ def evaluate(policy: EvalPolicy | str, *, task: str = "pick_place", episodes: in
     t_start = time.perf_counter()
     n_run, workers = 0, PoolInfo(backend, 0)
     reruns: list[dict[str, Any]] = []
-    if todo:
-        n_run, workers = _run(policy, run, spec, rendering, todo, done, seed_start, episodes,
-                              n_envs, videos, worker_timeout_s, max_retries, progress,
-                              backend, ray_address, reruns, log)
+    finished = False
+    try:
+        if todo:
+            n_run, workers = _run(policy, run, spec, rendering, todo, done, seed_start,
+                                  episodes, n_envs, videos, worker_timeout_s, max_retries,
+                                  progress, backend, ray_address, reruns, log, sink)
+        finished = True
+    finally:
+        if sink is not None:
+            sink.close(finished)
     eval_s = time.perf_counter() - t_start
 
     records = [done[s] for s in sorted(done)]
@@ -197,28 +225,47 @@ def _check_args(episodes: int, n_envs: int, seed_start: int, videos: int,
                          "--allow-train-seeds to measure on training seeds on purpose")
 
 
+def _open_rollouts(sink: Any, resume: bool, done: dict[int, EpisodeRecord],
+                   save_rollouts: str | Path, log: Callable[[str], None]
+                   ) -> dict[int, EpisodeRecord]:
+    """Open the rollout dataset; finished episodes missing from it run again (same seed, same
+    episode), so it ends with every seed exactly once. Returns the episodes still done."""
+    from so101_sim.harness.rollouts import open_sink
+
+    open_sink(sink, resume)
+    missing = sorted(s for s in done if not sink.has(s))
+    if missing:
+        log(f"so101-sim eval: {len(missing)} finished episode(s) are not in --save-rollouts "
+            f"{save_rollouts} (first: seed {missing[0]}); running them again to record them")
+    return {s: r for s, r in done.items() if s not in missing}
+
+
 def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, todo: deque,
          done: dict[int, EpisodeRecord], seed_start: int, episodes: int, n_envs: int,
          videos: int, worker_timeout_s: float, max_retries: int, progress: bool,
          backend: str, ray_address: str | None, reruns: list[dict[str, Any]],
-         log: Callable[[str], None]) -> tuple[int, PoolInfo]:
-    """Run every seed in `todo`; add each finished episode to `done` and to the run folder,
-    and each episode that had to be run again to `reruns`. Returns (episodes run, workers)."""
+         log: Callable[[str], None], sink: Any = None) -> tuple[int, PoolInfo]:
+    """Run every seed in `todo`; add each finished episode to `done` and to the run folder
+    (and, with a rollout `sink`, to its dataset), and each episode that had to be run again
+    to `reruns`. Returns (episodes run, workers)."""
     from tqdm import tqdm
 
     info = policy.info
     cfg = EnvWorkerConfig(task=task, render_size=rendering.render_size, cameras=info.cameras,
-                          env_state=info.needs_env_state, n_obs_steps=info.n_obs_steps)
+                          env_state=info.needs_env_state, n_obs_steps=info.n_obs_steps,
+                          rollout=sink.tape if sink is not None else None)
     failures: Counter[int] = Counter()
     bar = tqdm(total=episodes, initial=len(done), unit="ep", disable=not progress,
                dynamic_ncols=True)
     n_run = 0
-    if info.cameras or videos:
+    if info.cameras or videos or sink is not None:
         from so101_sim.rendering import select_gl_backend
 
         select_gl_backend()  # choose (and print) once here: workers inherit MUJOCO_GL
     pool = start_pool(cfg, min(n_envs, len(todo)), backend=backend, ray_address=ray_address,
-                      name="so101-eval-worker", preload=("so101_sim.env",),
+                      name="so101-eval-worker", preload=("so101_sim.env",) if sink is None
+                      else ("so101_sim.env", "so101_sim.harness.rollout_tape",
+                            "lerobot.datasets.video_utils"),
                       timeout_s=worker_timeout_s, log=log)
     slots = [_Slot() for _ in range(pool.size)]
     # Rows per policy forward: the policy's own batch size (LeRobotPolicy pads to it), else all.
@@ -259,7 +306,10 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                     render_s=s.render_s, policy_s=s.policy_s,
                     video=_save_video(s.video, reply.get("video_mp4")),
                     actions_sha=reply["actions_sha"])
-                run.append(rec)
+                if sink is not None:  # spooled before its line: a kill loses neither
+                    sink.add(reply["rollout"], lambda rec=rec: run.append(rec))
+                else:
+                    run.append(rec)
                 done[rec.seed] = rec
                 n_run += 1
                 slots[i] = _Slot()

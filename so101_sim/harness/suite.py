@@ -59,8 +59,10 @@ def evaluate_suite(policy: str, tasks: Sequence[str], *,
     for task in tasks:
         name = load_task(task).name
         loaded = load_policy(policy, task=task, **(load_options or {}))
-        results[name] = evaluate(loaded, task=task, out_dir=out / name, log=log,
-                                 **evaluate_kwargs)
+        kwargs = dict(evaluate_kwargs)
+        if kwargs.get("save_rollouts") is not None:  # one dataset per task: <DIR>/<task>
+            kwargs["save_rollouts"] = Path(kwargs["save_rollouts"]) / name
+        results[name] = evaluate(loaded, task=task, out_dir=out / name, log=log, **kwargs)
     info = suite_info(results, time.perf_counter() - t0, out, str(policy))
     out.mkdir(parents=True, exist_ok=True)
     (out / SUITE_INFO).write_text(json.dumps(info, indent=2) + "\n")
@@ -114,6 +116,7 @@ def evaluate_suite_from_args(args: Any, load_options: dict[str, Any]) -> dict[st
     """``so101-sim eval`` with several tasks: the same flags, applied to every task."""
     kwargs = {k: getattr(args, k) for k in ("episodes", "n_envs", "seed_start", "videos",
                                             "image_size", "resume", "allow_train_seeds",
-                                            "backend", "ray_address") if hasattr(args, k)}
+                                            "backend", "ray_address", "save_rollouts")
+              if hasattr(args, k)}
     return evaluate_suite(args.policy, task_list(args.task), load_options=load_options,
                           out_dir=args.out, **kwargs)
