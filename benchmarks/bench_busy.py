@@ -9,7 +9,9 @@ policy, `so101-sim record` of a few episodes, `so101-sim train` for a few steps 
 recording) and reports its wall time. "busy" starts one spinning process (a pure-Python
 loop, as a CI neighbour or a second job would be) for the duration of the cell. Settings:
 
-- default: libgomp's own waits (spin a while, then sleep), torch's default threads;
+- default: so101-sim's own choice (eval: half the cores for the policy; train: the thread
+  count that times fastest, re-checked as it runs) and libgomp's own waits;
+- all-cores: `--threads <cores>`, torch's default and so101-sim's before it chose;
 - passive: OMP_WAIT_POLICY=PASSIVE (threads sleep at once when idle);
 - spin: GOMP_SPINCOUNT=10000 (a short spin, then sleep);
 - threads1: one torch thread (`--threads 1`), no thread pool to keep in step.
@@ -32,9 +34,13 @@ ROOT = Path(__file__).resolve().parents[1]
 EXE = Path(sys.executable).parent / "so101-sim"
 SETTINGS = {
     "default": ({}, []),
+    # torch's own default before so101-sim chose threads itself: one thread per core
+    "all-cores": ({}, ["--threads", str(os.cpu_count() or 1)]),
     "passive": ({"OMP_WAIT_POLICY": "PASSIVE"}, []),
     "spin": ({"GOMP_SPINCOUNT": "10000"}, []),
     "threads1": ({}, ["--threads", "1"]),
+    # eval only: 16 envs, so half of them step while the policy runs the other half's forward
+    "threads1-k16": ({}, ["--threads", "1", "--n-envs", "16"]),
 }
 
 
@@ -86,8 +92,10 @@ def main() -> None:
         ref = None
         for name in args.settings.split(","):
             env_extra, flags = SETTINGS[name]
-            if job == "record" and name == "threads1":
+            if job == "record" and (name.startswith("threads1") or name == "all-cores"):
                 continue  # record has no torch thread pool
+            if job != "eval" and "--n-envs" in flags:
+                continue  # only eval has env workers that overlap the policy
             env = {**base_env, **env_extra}
             n += 1
             idle = _run(command(job, flags, n), env)

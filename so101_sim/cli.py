@@ -77,14 +77,10 @@ def _train(args: argparse.Namespace) -> int:
     from so101_sim.presets import PresetError
     from so101_sim.trainer import TrainError, train
 
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
     try:
         r = train(Path(args.dataset), Path(args.out), preset_name=args.preset, steps=args.steps,
                   batch_size=args.batch_size, resume=args.resume, precision=args.precision,
-                  device=args.device)
+                  device=args.device, threads=args.threads)
     except (TrainError, PresetError) as e:
         print(f"so101-sim train: {e}", file=sys.stderr)
         return 2
@@ -104,10 +100,6 @@ def _eval(args: argparse.Namespace) -> int:
                                  ("noise_scheduler", args.noise_scheduler),
                                  ("batch_size", args.policy_batch),
                                  ("camera_map", args.camera_map)) if v is not None}
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
     try:
         if args.device != "cpu" and args.policy != "expert" and ":" not in args.policy:
             from so101_sim.devices import resolve_device
@@ -123,7 +115,8 @@ def _eval(args: argparse.Namespace) -> int:
                  seed_start=args.seed_start, out_dir=args.out, videos=args.videos,
                  image_size=args.image_size, resume=args.resume,
                  allow_train_seeds=args.allow_train_seeds, backend=args.backend,
-                 ray_address=args.ray_address, save_rollouts=args.save_rollouts)
+                 ray_address=args.ray_address, save_rollouts=args.save_rollouts,
+                 threads=args.threads)
     except KeyboardInterrupt:
         saved = " and --save-rollouts" if args.save_rollouts else ""
         print(f"so101-sim eval: interrupted; every finished episode is in episodes.jsonl{saved} "
@@ -269,8 +262,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--resume", action="store_true",
                     help="continue from the last checkpoint in --out, exactly")
     tr.add_argument("--threads", type=int, default=None,
-                    help="torch CPU threads (default: all cores); use 1 when other jobs share "
-                         "the cores: oversubscribed thread pools are several times slower")
+                    help="torch CPU threads, fixed (default on CPU: chosen from timed steps, "
+                         "all cores when idle, fewer when another job takes cores)")
     tr.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
                     help="bf16: autocast matmuls/convs to bfloat16 (1.45x faster per step on "
                          "AMX/AVX512-BF16 CPUs; weights, optimiser and EMA stay fp32); auto "
@@ -313,9 +306,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "(one folder per task under --out, one table, eval_info.json "
                          "grouped per task)")
     ev.add_argument("--episodes", type=int, default=50)
-    ev.add_argument("--n-envs", type=int, default=8,
-                    help="env workers (default 8, which fills one policy forward): processes, "
-                         "or Ray actors with --backend ray; results per seed depend on neither")
+    ev.add_argument("--n-envs", type=int, default=16,
+                    help="env workers (default 16: two policy forwards of 8, so one half steps "
+                         "while the policy runs the other's): processes, or Ray actors with "
+                         "--backend ray; results per seed depend on neither")
     ev.add_argument("--seed-start", type=int, default=100_000,
                     help="first seed (default 100000; training seeds are below it)")
     ev.add_argument("--allow-train-seeds", action="store_true",
@@ -336,7 +330,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--noise-scheduler", choices=["DDIM", "DDPM"], default=None,
                     help="diffusion sampler (default: the checkpoint's)")
     ev.add_argument("--threads", type=int, default=None,
-                    help="torch CPU threads for the policy's forwards (default: torch's own)")
+                    help="torch CPU threads for the policy's forwards (default: half the cores, "
+                         "at least 1: the env workers render on the rest, and a busy "
+                         "neighbour cannot stall a thread pool)")
     ev.add_argument("--device", choices=("auto", "cpu", "cuda", "mps"), default="auto",
                     help="where policy forwards run (default auto: cuda, then mps, then cpu); "
                          "envs always run on CPU workers")

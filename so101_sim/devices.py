@@ -8,6 +8,12 @@ stay fp32 either way. torch is imported lazily: `import so101_sim` stays light.
 
 from __future__ import annotations
 
+import os
+import statistics
+import sys
+from collections import deque
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 DEVICES = ("auto", "cpu", "cuda", "mps")
@@ -55,3 +61,101 @@ def resolve_precision(precision: str, device: str) -> str:
     if device == "cpu":
         return "bf16" if cpu_has_fast_bf16() else "fp32"
     return "fp32"  # mps: bf16 autocast depends on the macOS version; stay safe
+
+
+def cpu_cores() -> int:
+    """CPU cores this process may run on (its affinity mask, else the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def eval_policy_threads() -> int:
+    """Torch threads for policy forwards during `eval` on CPU: half the cores, at least one.
+
+    The env workers render on the other half. On 2 cores this is one thread, which keeps a
+    16-episode eval as fast as torch's default (2 threads) on an idle machine and stops it
+    from slowing down 1.5-1.8x when another process takes a core: a 2-thread OpenMP pool waits
+    at every barrier for the thread that lost its core (benchmarks/bench_busy.py). It depends
+    on the machine only, never on the number of envs, so results stay K-independent.
+    """
+    return max(1, cpu_cores() // 2)
+
+
+@contextmanager
+def torch_threads(n: int | None) -> Iterator[int | None]:
+    """Run the block with `n` torch CPU threads (None: leave torch alone), then restore.
+
+    Does nothing unless torch is already imported: a policy that never loaded torch (the
+    expert) must not pay for importing it.
+    """
+    torch = sys.modules.get("torch")
+    if n is None or torch is None:
+        yield None
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield n
+    finally:
+        torch.set_num_threads(before)
+
+
+class AdaptiveThreads:
+    """Torch's CPU thread count for a training loop, chosen by timing the loop itself.
+
+    On an idle 2-core CPU two threads train 1.5x faster than one; when another process takes a
+    core, the 2-thread pool waits at every barrier for the thread that lost its core and a step
+    gets 2.7x slower, while one thread loses nothing (benchmarks/bench_busy.py). So every
+    `every` steps (and as soon as the recent median step is 1.3x slower than the last best),
+    it times `probe` steps with each candidate (all cores, half, one; the first step after a
+    switch is a warm-up) and keeps the fastest. Probing costs ~1-2% of an idle run. Thread
+    count changes the float rounding of a step, so an adaptive run is exact on resume only
+    where it made the same choices; pass a fixed ``--threads`` for bitwise repeatability.
+    """
+
+    def __init__(self, cores: int | None = None, every: int = 300, probe: int = 6,
+                 first: int = 10) -> None:
+        import torch
+
+        self._torch = torch
+        cores = cores or cpu_cores()
+        self.candidates = sorted({cores, max(1, cores // 2), 1}, reverse=True)
+        self.every, self.probe, self.next_probe = every, probe, first
+        self.best_s: float | None = None
+        self.recent: deque[float] = deque(maxlen=probe)
+        self._trial: tuple[int, list[float], dict[int, float]] | None = None
+        self.current = self.candidates[0]
+        torch.set_num_threads(self.current)
+
+    def after_step(self, step: int, seconds: float) -> None:
+        """Feed the duration of the step just done; may change the thread count."""
+        if len(self.candidates) == 1:
+            return
+        if self._trial is None:
+            self.recent.append(seconds)
+            slow = (self.best_s is not None and len(self.recent) == self.probe
+                    and statistics.median(self.recent) > 1.3 * self.best_s)
+            if step >= self.next_probe or slow:
+                self._trial = (0, [], {})
+                self._set(self.candidates[0])
+            return
+        i, times, results = self._trial
+        times.append(seconds)
+        if len(times) <= self.probe:
+            return
+        results[self.candidates[i]] = statistics.median(times[1:])
+        if i + 1 < len(self.candidates):
+            self._trial = (i + 1, [], results)
+            self._set(self.candidates[i + 1])
+            return
+        best = min(results, key=results.__getitem__)
+        self.best_s, self._trial = results[best], None
+        self.next_probe = step + self.every
+        self.recent.clear()
+        self._set(best)
+
+    def _set(self, n: int) -> None:
+        self.current = n
+        self._torch.set_num_threads(n)

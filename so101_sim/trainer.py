@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from so101_sim.devices import resolve_device, resolve_precision
+from so101_sim.devices import AdaptiveThreads, resolve_device, resolve_precision
 from so101_sim.frame_cache import load_frames
 from so101_sim.presets import Preset, load_preset, make_config, policy_features
 from so101_sim.train_state import (
@@ -169,10 +169,13 @@ def _save_pretrained(policy, ema, pre, post, dest: Path, info: dict) -> None:
 def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | None = None,
           batch_size: int | None = None, resume: bool = False, keep_checkpoints: int = 3,
           progress: bool = True, log_every: int | None = None,
-          precision: str = "fp32", device: str = "cpu") -> TrainResult:
+          precision: str = "fp32", device: str = "cpu",
+          threads: int | None = None) -> TrainResult:
     """Train `preset_name` on the dataset at `dataset_dir`; see the module docstring.
 
     `device` is auto|cpu|cuda|mps (`devices.resolve_device`); `precision` fp32|bf16|auto.
+    `threads`: torch CPU threads; None on the CPU: chosen from measured step times
+    (`devices.AdaptiveThreads`), so a busy neighbour does not stall the thread pool.
     """
     from diffusers.optimization import get_scheduler
     from diffusers.training_utils import EMAModel
@@ -302,6 +305,9 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             (old_ck / "training_state.pt").unlink()  # keep its EMA policy, drop the bulk
         return ck
 
+    if threads:
+        torch.set_num_threads(threads)
+    tuner = AdaptiveThreads() if device == "cpu" and not threads else None
     bar = tqdm(total=steps, initial=step, desc=f"train {preset.name}", unit="step",
                disable=not progress, dynamic_ncols=True)
     t0, loss_val, window = time.perf_counter(), math.nan, []
@@ -321,12 +327,15 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             step += 1
             loss_val = float(loss.detach())
             window.append((loss_val, time.perf_counter() - t_step))
+            if tuner is not None:
+                tuner.after_step(step, window[-1][1])
             if step % log_every == 0 or step == steps:
                 mean_loss = float(np.mean([w[0] for w in window]))
                 sps = batch_size * len(window) / sum(w[1] for w in window)
                 log.write(json.dumps({"step": step, "loss": round(mean_loss, 6),
                                       "lr": scheduler.get_last_lr()[0],
                                       "samples_per_s": round(sps, 2),
+                                      "threads": torch.get_num_threads(),
                                       "ema_decay": round(ema.cur_decay_value or 0.0, 6),
                                       "wall_s": round(wall_before + time.perf_counter() - t0, 1)})
                           + "\n")

@@ -191,6 +191,31 @@ def test_user_policy_protocol(short, tmp_path):
     assert "direct" in res["config"]["images"]
 
 
+class _CountThreads(_HoldStill):
+    """Notes torch's CPU thread count at every forward."""
+
+    def predict_chunks(self, requests):
+        import torch
+
+        self.threads = getattr(self, "threads", set()) | {torch.get_num_threads()}
+        return super().predict_chunks(requests)
+
+
+def test_policy_threads_default_to_half_the_cores_and_are_restored(short, tmp_path):
+    import torch
+
+    from so101_sim.devices import cpu_cores, eval_policy_threads
+
+    before = torch.get_num_threads()
+    assert eval_policy_threads() == max(1, cpu_cores() // 2)
+    for asked, expected in ((None, eval_policy_threads()), (1, 1), (3, 3)):
+        policy = _CountThreads()
+        evaluate(policy, task=str(short), episodes=2, n_envs=2, videos=0, report=False,
+                 out_dir=tmp_path / f"run{asked}", threads=asked, **_quiet())
+        assert policy.threads == {expected}
+        assert torch.get_num_threads() == before  # the caller's setting comes back
+
+
 def test_policy_error_is_retried_then_reported(short, tmp_path):
     with pytest.raises(RuntimeError, match=r"(?s)seed 100001 failed 3 times.*NaN"):
         evaluate(_HoldStill(bad_seed=100001), task=str(short), episodes=3, n_envs=2,

@@ -28,10 +28,11 @@ from typing import Any
 
 import numpy as np
 
-# OpenMP waits: the harness keeps libgomp's default (spin briefly, then sleep). Env workers are
-# idle while the policy runs, so nothing competes with its threads; OMP_WAIT_POLICY=PASSIVE
-# made a DDIM-10 forward of 8 rows 2.5x slower here (0.31 s vs 0.12 s: the U-Net's many small
-# parallel regions each pay a futex wake-up) and a 16-episode eval 1.9x slower.
+# OpenMP: the harness keeps libgomp's default waits (spin briefly, then sleep):
+# OMP_WAIT_POLICY=PASSIVE made a DDIM-10 forward of 8 rows 2.5x slower here (the U-Net's many
+# small parallel regions each pay a futex wake-up). It runs forwards on half the cores
+# (devices.eval_policy_threads: one thread on 2 cores), so a busy neighbour cannot stall a
+# thread pool at its barriers (benchmarks/bench_busy.py).
 import torch
 
 from so101_sim.env import CAMERAS, ENV_STATE_SIZE

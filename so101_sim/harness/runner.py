@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from so101_sim.devices import eval_policy_threads, torch_threads
 from so101_sim.harness.env_worker import EnvWorkerConfig
 from so101_sim.harness.policies import ChunkRequest, EvalPolicy, PolicyInfo, load_policy
 from so101_sim.harness.results import EpisodeRecord, RunDir, aggregate, per_episode
@@ -94,13 +95,14 @@ class _Slot:
 
 
 def evaluate(policy: EvalPolicy | str, *, task: str = "pick_place", episodes: int = 50,
-             n_envs: int = 8, seed_start: int = EVAL_SEED_START, out_dir: str | Path | None = None,
+             n_envs: int = 16, seed_start: int = EVAL_SEED_START, out_dir: str | Path | None = None,
              videos: int = 2, image_size: tuple[int, int] | None = None, resume: bool = False,
              allow_train_seeds: bool = False, worker_timeout_s: float = 600.0,
              max_retries: int = 2, progress: bool = True, report: bool = True,
              backend: str = "local", ray_address: str | None = None,
              save_rollouts: str | Path | None = None, checkpoint_every: int = 50,
-             log: Callable[[str], None] = print) -> dict[str, Any]:
+             threads: int | None = None, log: Callable[[str], None] = print
+             ) -> dict[str, Any]:
     """Evaluate `policy` on `episodes` seeds from `seed_start`; return the eval_info dict.
 
     `policy` is an ``EvalPolicy``, ``"expert"`` or a lerobot checkpoint directory. Writes
@@ -112,6 +114,8 @@ def evaluate(policy: EvalPolicy | str, *, task: str = "pick_place", episodes: in
     `save_rollouts`: a folder that gets every evaluated episode as a LeRobotDataset, written in
     seed order and checkpointed every `checkpoint_every` episodes (``harness.rollouts``);
     every step is then rendered, so the run is slower, but its results are the same.
+    `threads`: torch CPU threads for the policy's forwards while it runs (restored after);
+    None: ``devices.eval_policy_threads()``, half the cores (one on 2 cores).
     """
     spec = load_task(task)
     if not isinstance(policy, EvalPolicy):
@@ -167,9 +171,10 @@ def evaluate(policy: EvalPolicy | str, *, task: str = "pick_place", episodes: in
     finished = False
     try:
         if todo:
-            n_run, workers = _run(policy, run, spec, rendering, todo, done, seed_start,
-                                  episodes, n_envs, videos, worker_timeout_s, max_retries,
-                                  progress, backend, ray_address, reruns, log, sink)
+            with torch_threads(threads or eval_policy_threads()):
+                n_run, workers = _run(policy, run, spec, rendering, todo, done, seed_start,
+                                      episodes, n_envs, videos, worker_timeout_s, max_retries,
+                                      progress, backend, ray_address, reruns, log, sink)
         finished = True
     finally:
         if sink is not None:

@@ -116,7 +116,8 @@ def evaluate_suite_from_args(args: Any, load_options: dict[str, Any]) -> dict[st
     """``so101-sim eval`` with several tasks: the same flags, applied to every task."""
     kwargs = {k: getattr(args, k) for k in ("episodes", "n_envs", "seed_start", "videos",
                                             "image_size", "resume", "allow_train_seeds",
-                                            "backend", "ray_address", "save_rollouts")
+                                            "backend", "ray_address", "save_rollouts",
+                                            "threads")
               if hasattr(args, k)}
     return evaluate_suite(args.policy, task_list(args.task), load_options=load_options,
                           out_dir=args.out, **kwargs)
