@@ -108,9 +108,10 @@ class AdaptiveThreads:
     On an idle 2-core CPU two threads train 1.5x faster than one; when another process takes a
     core, the 2-thread pool waits at every barrier for the thread that lost its core and a step
     gets 2.7x slower, while one thread loses nothing (benchmarks/bench_busy.py). So every
-    `every` steps (and as soon as the recent median step is 1.3x slower than the last best),
+    `every` steps (and once the median of the last 4 x `probe` steps is 1.3x the last best),
     it times `probe` steps with each candidate (all cores, half, one; the first step after a
-    switch is a warm-up) and keeps the fastest. Probing costs ~1-2% of an idle run. Thread
+    switch is a warm-up) and keeps the fastest; while the answer stays the same it probes
+    half as often each time (up to every 4 x `every` steps), so probing costs under 1%. Thread
     count changes the float rounding of a step, so an adaptive run is exact on resume only
     where it made the same choices; pass a fixed ``--threads`` for bitwise repeatability.
     """
@@ -123,10 +124,13 @@ class AdaptiveThreads:
         cores = cores or cpu_cores()
         self.candidates = sorted({cores, max(1, cores // 2), 1}, reverse=True)
         self.every, self.probe, self.next_probe = every, probe, first
+        self._gap = every // 2  # the first repeat of the first answer probes after `every`
         self.best_s: float | None = None
-        self.recent: deque[float] = deque(maxlen=probe)
+        # the slowdown check looks at a longer window than a probe, so that one slow step
+        # (a checkpoint save, a neighbour's burst) does not set off a probe
+        self.recent: deque[float] = deque(maxlen=4 * probe)
         self._trial: tuple[int, list[float], dict[int, float]] | None = None
-        self.current = self.candidates[0]
+        self.current = self.chosen = self.candidates[0]  # in force / picked by the last probe
         torch.set_num_threads(self.current)
 
     def after_step(self, step: int, seconds: float) -> None:
@@ -135,7 +139,7 @@ class AdaptiveThreads:
             return
         if self._trial is None:
             self.recent.append(seconds)
-            slow = (self.best_s is not None and len(self.recent) == self.probe
+            slow = (self.best_s is not None and len(self.recent) == self.recent.maxlen
                     and statistics.median(self.recent) > 1.3 * self.best_s)
             if step >= self.next_probe or slow:
                 self._trial = (0, [], {})
@@ -151,8 +155,11 @@ class AdaptiveThreads:
             self._set(self.candidates[i + 1])
             return
         best = min(results, key=results.__getitem__)
-        self.best_s, self._trial = results[best], None
-        self.next_probe = step + self.every
+        # the same answer again: probe half as often (up to 4x `every`), since each probe
+        # spends steps on the slower setting; a new answer: back to every `every` steps
+        self._gap = min(2 * self._gap, 4 * self.every) if best == self.chosen else self.every
+        self.best_s, self._trial, self.chosen = results[best], None, best
+        self.next_probe = step + self._gap
         self.recent.clear()
         self._set(best)
 

@@ -42,3 +42,18 @@ def test_one_core_has_nothing_to_choose():
         assert tuner.candidates == [1] and torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(before)
+
+
+def test_probes_thin_out_while_the_answer_holds():
+    before = torch.get_num_threads()
+    try:
+        tuner = AdaptiveThreads(cores=2, every=100, probe=3, first=5)
+        one_thread_steps = 0
+        for step in range(1, 3001):
+            tuner.after_step(step, {2: 0.33, 1: 0.55}[torch.get_num_threads()])
+            one_thread_steps += torch.get_num_threads() == 1
+        # probes after 100, 200, 400, then every 400 steps: ~10 probes of 4 one-thread steps,
+        # where a fixed 100-step period would spend 120
+        assert tuner.current == 2 and 0 < one_thread_steps <= 48
+    finally:
+        torch.set_num_threads(before)
