@@ -129,13 +129,16 @@ def _our_actor_pids() -> list[int]:
 def test_killed_actor_is_replaced_and_its_episode_rerun(expert_local, tmp_path) -> None:
     out = tmp_path / "run"
     killed: list[int] = []
+    # actors of the previous test's pool may still be exiting (ray.kill does not wait): on a
+    # busy machine killing one of those would kill nothing of this run
+    stale = set(_our_actor_pids())
 
     def killer() -> None:
         deadline = time.monotonic() + 300
         while time.monotonic() < deadline and not killed:
             f = out / "episodes.jsonl"
             if f.exists() and f.read_text().count("\n") >= 1:
-                pids = _our_actor_pids()
+                pids = [p for p in _our_actor_pids() if p not in stale]
                 if pids:
                     os.kill(pids[0], signal.SIGKILL)
                     killed.append(pids[0])
