@@ -9,8 +9,9 @@ policy, `so101-sim record` of a few episodes, `so101-sim train` for a few steps 
 recording) and reports its wall time. "busy" starts one spinning process (a pure-Python
 loop, as a CI neighbour or a second job would be) for the duration of the cell. Settings:
 
-- default: so101-sim's own choice (eval: half the cores for the policy; train: the thread
-  count that times fastest, re-checked as it runs) and libgomp's own waits;
+- default: so101-sim's own choice (eval: half the cores for the policy; train: all cores
+  while the others' CPU use is nil, else the batch in one part per core, one thread each,
+  re-read every 2 s) and libgomp's own waits;
 - all-cores: `--threads <cores>`, torch's default and so101-sim's before it chose;
 - passive: OMP_WAIT_POLICY=PASSIVE (threads sleep at once when idle);
 - spin: GOMP_SPINCOUNT=10000 (a short spin, then sleep);

@@ -5,7 +5,9 @@
 Each variant runs in its own child process (fresh torch, same seed, same synthetic batch shapes
 as `so101-sim train` feeds the policy) one after another in this one run, so the ratios compare
 like with like: fp32, bf16 autocast, bf16 + channels_last memory format, bf16 + torch.compile
-(inductor on CPU; compile time is reported apart from the steady state), and 1 vs all threads.
+(inductor on CPU; compile time is reported apart from the steady state), 1 vs all threads, and
+the batch in 2 parts of one thread each (`so101_sim.train_threads.BatchParts`, what `train`
+does beside a busy neighbour). `--busy` times every variant beside one spinning process too.
 The first `--warmup` steps are excluded. Pause other CPU work while it runs.
 """
 
@@ -26,6 +28,7 @@ VARIANTS = {
     "bf16+channels_last": {"bf16": True, "channels_last": True},
     "bf16+compile": {"bf16": True, "compile": True},
     "bf16 1-thread": {"bf16": True, "threads": 1},
+    "bf16 2-parts": {"bf16": True, "threads": 1, "parts": 2},
 }
 
 
@@ -36,6 +39,7 @@ def child(preset_name: str, steps: int, warmup: int, opts: dict) -> dict:
     from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
 
     from so101_sim.presets import load_preset, make_config, policy_features
+    from so101_sim.train_threads import BatchParts
 
     if opts.get("threads"):
         torch.set_num_threads(opts["threads"])
@@ -60,22 +64,33 @@ def child(preset_name: str, steps: int, warmup: int, opts: dict) -> dict:
     if opts.get("compile"):
         forward = torch.compile(policy.forward)
 
-    def step() -> float:
+    def forward_backward(part: dict, weight: float) -> float:
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bool(opts.get("bf16"))):
-            loss, _ = forward(batch)
+            loss, _ = forward(part)
+        (loss * weight).backward()
+        return float(loss.detach()) * weight
+
+    run_parts = BatchParts()
+
+    def step() -> float:
         opt.zero_grad(set_to_none=True)
-        loss.backward()
+        loss = run_parts(forward_backward, batch, opts.get("parts", 1))
         opt.step()
-        return float(loss)
+        return loss
 
     t0 = time.perf_counter()
     for _ in range(warmup):
         step()
     warm_s = time.perf_counter() - t0
+    neighbour = (subprocess.Popen([sys.executable, "-c", "while True: pass"])
+                 if opts.get("busy") else None)
     t0 = time.perf_counter()
     for _ in range(steps):
         step()
     dt = (time.perf_counter() - t0) / steps
+    if neighbour is not None:
+        neighbour.kill()
+    run_parts.close()
     return {"step_s": dt, "samples_per_s": b / dt, "warmup_s": warm_s,
             "threads": torch.get_num_threads()}
 
@@ -86,22 +101,27 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--warmup", type=int, default=5)
     p.add_argument("--variants", default=",".join(VARIANTS))
+    p.add_argument("--busy", action="store_true",
+                   help="also time each variant beside one spinning process")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.child:
-        print(json.dumps(child(args.preset, args.steps, args.warmup, VARIANTS[args.child])))
+        opts = {**VARIANTS[args.child], "busy": args.busy}
+        print(json.dumps(child(args.preset, args.steps, args.warmup, opts)))
         return
     print(f"preset {args.preset}, {args.steps} timed steps after {args.warmup} warm-up, "
           f"load average {os.getloadavg()[0]:.2f} at start")
     rows = []
     for name in args.variants.split(","):
-        r = subprocess.run([sys.executable, __file__, "--preset", args.preset, "--steps",
-                            str(args.steps), "--warmup", str(args.warmup), "--child", name],
-                           capture_output=True, text=True)
-        if r.returncode != 0:
-            print(f"{name}: failed: {r.stderr.strip().splitlines()[-1]}")
-            continue
-        rows.append((name, json.loads(r.stdout.strip().splitlines()[-1])))
+        for busy in (False, True) if args.busy else (False,):
+            r = subprocess.run([sys.executable, __file__, "--preset", args.preset, "--steps",
+                                str(args.steps), "--warmup", str(args.warmup), "--child", name]
+                               + (["--busy"] if busy else []), capture_output=True, text=True)
+            label = f"{name}, busy" if busy else name
+            if r.returncode != 0:
+                print(f"{label}: failed: {r.stderr.strip().splitlines()[-1]}")
+                continue
+            rows.append((label, json.loads(r.stdout.strip().splitlines()[-1])))
     base = rows[0][1]["step_s"] if rows else 1.0
     print(f"\n| variant | threads | s/step | samples/s | vs {rows[0][0]} | warm-up s |")
     print("|---|---|---|---|---|---|")

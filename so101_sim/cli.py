@@ -262,8 +262,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--resume", action="store_true",
                     help="continue from the last checkpoint in --out, exactly")
     tr.add_argument("--threads", type=int, default=None,
-                    help="torch CPU threads, fixed (default on CPU: chosen from timed steps, "
-                         "all cores when idle, fewer when another job takes cores)")
+                    help="torch CPU threads, fixed and bitwise repeatable (default on CPU: "
+                         "all cores when idle; with another job busy, the batch in one part "
+                         "per core, one thread each)")
     tr.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
                     help="bf16: autocast matmuls/convs to bfloat16 (1.45x faster per step on "
                          "AMX/AVX512-BF16 CPUs; weights, optimiser and EMA stay fp32); auto "

@@ -9,9 +9,7 @@ stay fp32 either way. torch is imported lazily: `import so101_sim` stays light.
 from __future__ import annotations
 
 import os
-import statistics
 import sys
-from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -100,69 +98,3 @@ def torch_threads(n: int | None) -> Iterator[int | None]:
         yield n
     finally:
         torch.set_num_threads(before)
-
-
-class AdaptiveThreads:
-    """Torch's CPU thread count for a training loop, chosen by timing the loop itself.
-
-    On an idle 2-core CPU two threads train 1.5x faster than one; when another process takes a
-    core, the 2-thread pool waits at every barrier for the thread that lost its core and a step
-    gets 2.7x slower, while one thread loses nothing (benchmarks/bench_busy.py). So every
-    `every` steps (and once the median of the last 4 x `probe` steps is 1.3x the last best),
-    it times `probe` steps with each candidate (all cores, half, one; the first step after a
-    switch is a warm-up) and keeps the fastest; while the answer stays the same it probes
-    half as often each time (up to every 4 x `every` steps), so probing costs under 1%. Thread
-    count changes the float rounding of a step, so an adaptive run is exact on resume only
-    where it made the same choices; pass a fixed ``--threads`` for bitwise repeatability.
-    """
-
-    def __init__(self, cores: int | None = None, every: int = 300, probe: int = 6,
-                 first: int = 10) -> None:
-        import torch
-
-        self._torch = torch
-        cores = cores or cpu_cores()
-        self.candidates = sorted({cores, max(1, cores // 2), 1}, reverse=True)
-        self.every, self.probe, self.next_probe = every, probe, first
-        self._gap = every // 2  # the first repeat of the first answer probes after `every`
-        self.best_s: float | None = None
-        # the slowdown check looks at a longer window than a probe, so that one slow step
-        # (a checkpoint save, a neighbour's burst) does not set off a probe
-        self.recent: deque[float] = deque(maxlen=4 * probe)
-        self._trial: tuple[int, list[float], dict[int, float]] | None = None
-        self.current = self.chosen = self.candidates[0]  # in force / picked by the last probe
-        torch.set_num_threads(self.current)
-
-    def after_step(self, step: int, seconds: float) -> None:
-        """Feed the duration of the step just done; may change the thread count."""
-        if len(self.candidates) == 1:
-            return
-        if self._trial is None:
-            self.recent.append(seconds)
-            slow = (self.best_s is not None and len(self.recent) == self.recent.maxlen
-                    and statistics.median(self.recent) > 1.3 * self.best_s)
-            if step >= self.next_probe or slow:
-                self._trial = (0, [], {})
-                self._set(self.candidates[0])
-            return
-        i, times, results = self._trial
-        times.append(seconds)
-        if len(times) <= self.probe:
-            return
-        results[self.candidates[i]] = statistics.median(times[1:])
-        if i + 1 < len(self.candidates):
-            self._trial = (i + 1, [], results)
-            self._set(self.candidates[i + 1])
-            return
-        best = min(results, key=results.__getitem__)
-        # the same answer again: probe half as often (up to 4x `every`), since each probe
-        # spends steps on the slower setting; a new answer: back to every `every` steps
-        self._gap = min(2 * self._gap, 4 * self.every) if best == self.chosen else self.every
-        self.best_s, self._trial, self.chosen = results[best], None, best
-        self.next_probe = step + self._gap
-        self.recent.clear()
-        self._set(best)
-
-    def _set(self, n: int) -> None:
-        self.current = n
-        self._torch.set_num_threads(n)

@@ -31,12 +31,12 @@ from typing import Any
 import numpy as np
 
 # OpenMP waits stay libgomp's default (spin briefly, then sleep): OMP_WAIT_POLICY=PASSIVE made a
-# cpu-preset step 1.2x slower on an idle machine. Next to another busy process, set PASSIVE or
-# --threads 1 yourself (a spinning 2-thread pool beside a recording was 6x slower per step).
+# cpu-preset step 1.2x slower on an idle machine. Next to a busy process, AdaptiveThreads stops
+# the pool from waiting on a thread that lost its core.
 import torch
 from tqdm import tqdm
 
-from so101_sim.devices import AdaptiveThreads, resolve_device, resolve_precision
+from so101_sim.devices import resolve_device, resolve_precision
 from so101_sim.frame_cache import load_frames
 from so101_sim.presets import Preset, load_preset, make_config, policy_features
 from so101_sim.train_state import (
@@ -47,6 +47,7 @@ from so101_sim.train_state import (
     load_training_state,
     truncate_log,
 )
+from so101_sim.train_threads import AdaptiveThreads, BatchParts
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -174,8 +175,9 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     """Train `preset_name` on the dataset at `dataset_dir`; see the module docstring.
 
     `device` is auto|cpu|cuda|mps (`devices.resolve_device`); `precision` fp32|bf16|auto.
-    `threads`: torch CPU threads; None on the CPU: chosen from measured step times
-    (`devices.AdaptiveThreads`), so a busy neighbour does not stall the thread pool.
+    `threads`: torch CPU threads, fixed; None on the CPU: fitted to the cores other
+    processes leave (`train_threads.AdaptiveThreads`), so a busy neighbour does not stall
+    the thread pool.
     """
     from diffusers.optimization import get_scheduler
     from diffusers.training_utils import EMAModel
@@ -308,6 +310,14 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     if threads:
         torch.set_num_threads(threads)
     tuner = AdaptiveThreads() if device == "cpu" and not threads else None
+    run_parts = BatchParts()
+
+    def forward_backward(part: dict, weight: float) -> float:
+        with torch.autocast(device, dtype=torch.bfloat16, enabled=precision == "bf16"):
+            loss, _ = policy.forward(part)
+        (loss if weight == 1.0 else loss * weight).backward()
+        return float(loss.detach()) * weight
+
     bar = tqdm(total=steps, initial=step, desc=f"train {preset.name}", unit="step",
                disable=not progress, dynamic_ncols=True)
     t0, loss_val, window = time.perf_counter(), math.nan, []
@@ -317,15 +327,12 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             t_step = time.perf_counter()
             idx = rng.choice(demos.starts, size=batch_size)
             batch = pre(gather_batch(demos, idx, n_obs, horizon))
-            with torch.autocast(device, dtype=torch.bfloat16, enabled=precision == "bf16"):
-                loss, _ = policy.forward(batch)
             optimizer.zero_grad(set_to_none=True)
-            loss.backward()
+            loss_val = run_parts(forward_backward, batch, tuner.parts if tuner else 1)
             optimizer.step()
             scheduler.step()
             ema.step(policy.parameters())
             step += 1
-            loss_val = float(loss.detach())
             window.append((loss_val, time.perf_counter() - t_step))
             if tuner is not None:
                 tuner.after_step(step, window[-1][1])
@@ -336,6 +343,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                                       "lr": scheduler.get_last_lr()[0],
                                       "samples_per_s": round(sps, 2),
                                       "threads": torch.get_num_threads(),
+                                      "parts": tuner.parts if tuner else 1,
                                       "ema_decay": round(ema.cur_decay_value or 0.0, 6),
                                       "wall_s": round(wall_before + time.perf_counter() - t0, 1)})
                           + "\n")
@@ -348,6 +356,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
         wall = wall_before + time.perf_counter() - t0
         ck = save(step, wall, loss_val)
     finally:
+        run_parts.close()
         bar.close()
         log.close()
         for s, h in old.items():

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from so101_sim import trainer
 from so101_sim.presets import PresetError, load_preset, make_config, policy_features
 from so101_sim.recording import DEFAULT_REPO_ID, record
 from so101_sim.trainer import TrainError, gather_batch, load_demos, train
@@ -131,12 +132,14 @@ def _weights(path: Path) -> dict[str, torch.Tensor]:
 
 
 def test_resume_continues_exactly(dataset: Path, tiny: Path, tmp_path: Path) -> None:
-    straight = train(dataset, tmp_path / "a", preset_name=str(tiny), steps=4, progress=False)
-    train(dataset, tmp_path / "b", preset_name=str(tiny), steps=2, progress=False)
+    # a fixed thread count: the adaptive one may cut steps into parts if the machine is busy
+    fixed = {"progress": False, "threads": 1}
+    straight = train(dataset, tmp_path / "a", preset_name=str(tiny), steps=4, **fixed)
+    train(dataset, tmp_path / "b", preset_name=str(tiny), steps=2, **fixed)
     with pytest.raises(TrainError, match="--resume"):
-        train(dataset, tmp_path / "b", preset_name=str(tiny), steps=4, progress=False)
+        train(dataset, tmp_path / "b", preset_name=str(tiny), steps=4, **fixed)
     resumed = train(dataset, tmp_path / "b", preset_name=str(tiny), steps=4, resume=True,
-                    progress=False)
+                    **fixed)
     assert straight.step == resumed.step == 4
     a, b = _weights(straight.pretrained_dir), _weights(resumed.pretrained_dir)
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
@@ -147,6 +150,32 @@ def test_resume_continues_exactly(dataset: Path, tiny: Path, tmp_path: Path) -> 
     info = json.loads((straight.pretrained_dir / "so101_sim_train.json").read_text())
     assert info["dataset_image_size"] == list(SMALL) and info["policy_image_size"] == [24, 32]
     assert info["weights"] == "EMA" and info["step"] == 4
+
+
+def test_busy_machine_steps_in_parts(dataset: Path, tiny: Path, tmp_path: Path,
+                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """With a neighbour sensed, steps run in 2 batch parts: same loss scale, logged, trains."""
+
+    class Busy(trainer.AdaptiveThreads):
+        def __init__(self) -> None:
+            super().__init__(cores=2, sense=False)
+            self.parts = 2
+            self._set(1)
+
+        def after_step(self, step: int, seconds: float) -> None:
+            pass
+
+    whole = train(dataset, tmp_path / "w", preset_name=str(tiny), steps=3, progress=False,
+                  threads=1)
+    monkeypatch.setattr(trainer, "AdaptiveThreads", Busy)
+    parts = train(dataset, tmp_path / "p", preset_name=str(tiny), steps=3, progress=False)
+    rows = [json.loads(x) for x in (tmp_path / "p" / "train_log.jsonl").read_text().splitlines()]
+    assert {r["parts"] for r in rows} == {2} and {r["threads"] for r in rows} == {1}
+    # the same batches with other noise draws: the summed part losses are the batch mean
+    assert np.isfinite(parts.final_loss)
+    assert 0.7 < parts.final_loss / whole.final_loss < 1.4
+    a, b = _weights(whole.pretrained_dir), _weights(parts.pretrained_dir)
+    assert any(not torch.equal(a[k], b[k]) for k in a)  # it trained, with its own draws
 
 
 def test_bf16_precision_trains_and_is_recorded(dataset: Path, tiny: Path, tmp_path: Path) -> None:
