@@ -77,7 +77,7 @@ def _success_rows(rows: list[dict]) -> list[str]:
     lines = ["", "Closed-loop success along training (`so101-sim curve`, each checkpoint on "
              f"the same {rows[-1]['episodes']} evaluation seeds from {rows[-1]['seed_start']}):",
              "", "![success against training](curve.png)", "",
-             "| step | training hours | success | 95% Wilson |", "|---|---|---|---|"]
+             "| step | trainer wall hours | success | 95% Wilson |", "|---|---|---|---|"]
     lines += [f"| {r['step']} | {r['train_hours']:.2f} | {r['successes']}/{r['episodes']} | "
               f"{100 * r['ci95'][0]:.1f}-{100 * r['ci95'][1]:.1f}% |" for r in rows]
     return lines
@@ -101,7 +101,8 @@ def model_card(train_info: dict, eval_info: dict | None, curve: list[dict],
         f"{t['policy_image_size'][1]} by {t['image_pipeline']} |",
         f"| steps | {t['step']} of {t['total_steps']} planned, batch {t['batch_size']} |",
         f"| precision | {_precision(t)} |",
-        f"| wall time | {t['train_wall_s'] / 3600:.2f} h |",
+        f"| trainer wall time | {t['train_wall_s'] / 3600:.2f} h (while the trainer ran, "
+        "including time paused or sharing the CPU) |",
         f"| hardware | {hardware} |",
     ]
     if eval_info:

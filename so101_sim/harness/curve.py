@@ -88,7 +88,7 @@ def plot_curve(rows: list[dict[str, Any]], dest: Path, title: str = "") -> Path:
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
     for ax, key, label in ((axes[0], "step", "training step"),
-                           (axes[1], "train_hours", "training hours (this CPU)")):
+                           (axes[1], "train_hours", "trainer wall hours (incl. pauses)")):
         x = [r[key] for r in rows]
         y = [100 * r["success"] for r in rows]
         lo = [100 * r["ci95"][0] for r in rows]
