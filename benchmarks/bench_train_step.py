@@ -64,17 +64,15 @@ def child(preset_name: str, steps: int, warmup: int, opts: dict) -> dict:
     if opts.get("compile"):
         forward = torch.compile(policy.forward)
 
-    def forward_backward(part: dict, weight: float) -> float:
+    def batch_loss(part: dict) -> torch.Tensor:
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bool(opts.get("bf16"))):
-            loss, _ = forward(part)
-        (loss * weight).backward()
-        return float(loss.detach()) * weight
+            return forward(part)[0]
 
     run_parts = BatchParts()
 
     def step() -> float:
         opt.zero_grad(set_to_none=True)
-        loss = run_parts(forward_backward, batch, opts.get("parts", 1))
+        loss = run_parts(batch_loss, batch, opts.get("parts", 1))
         opt.step()
         return loss
 

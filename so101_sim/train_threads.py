@@ -6,8 +6,8 @@ that run forward and backward in their own Python threads with one intra-op thre
 (`BatchParts`). A pool of OpenMP threads meets at a barrier after every parallel region, so
 one thread that lost its core stalls the rest; independent parts do not wait for each other,
 and the scheduler gives them whatever share of the cores the neighbours leave. Measured on 2
-cores with one busy neighbour (benchmarks/bench_busy.py): a step at 2 OpenMP threads is 2.4x
-its idle time, at 1 thread 1.4x, in 2 parts 1.3x.
+cores beside one busy process (benchmarks/bench_train_step.py --busy), against the idle 2-thread
+step: a step at 2 OpenMP threads took 2.94x, at 1 thread 1.27x, in 2 parts 1.20x.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from collections import deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 from so101_sim.devices import cpu_cores
 
@@ -168,25 +169,32 @@ def split_batch(batch: dict, parts: int) -> list[tuple[dict, float]]:
 class BatchParts:
     """Forward and backward of one batch in `parts` threads, gradients summed in place.
 
-    `step_fn(part, weight)` runs the forward on `part`, back-propagates `weight` x its mean
-    loss and returns that weighted loss; with weights = each part's share of the samples the
-    summed gradients are the whole batch's (the loss is a mean over samples). Autograd adds
-    into `.grad` under a lock, so the parts can share the parameters. Threads are kept
-    between steps; `close()` ends them.
+    `loss_fn(part)` returns the mean loss over `part`'s samples. Each part back-propagates its
+    loss times its share of the samples, so the summed gradients (and the returned loss) are
+    the whole batch's; a batch in one part runs on the calling thread, unweighted, exactly as
+    a plain `loss.backward()`. Autograd adds into `.grad` under a lock, so the parts can share
+    the parameters. Threads are kept between steps; `close()` ends them.
     """
 
     def __init__(self) -> None:
         self._pool: ThreadPoolExecutor | None = None
         self._size = 0
 
-    def __call__(self, step_fn: Callable[[dict, float], float], batch: dict,
-                 parts: int) -> float:
+    @staticmethod
+    def _backward(loss_fn: Callable[[dict], Any], part: dict, weight: float) -> float:
+        loss = loss_fn(part)
+        (loss if weight == 1.0 else loss * weight).backward()
+        return float(loss.detach()) * weight
+
+    def __call__(self, loss_fn: Callable[[dict], Any], batch: dict, parts: int) -> float:
+        """Back-propagate `loss_fn` over `batch`; returns the batch's mean loss."""
         if parts <= 1:
-            return step_fn(batch, 1.0)
+            return self._backward(loss_fn, batch, 1.0)
         if self._size != parts:
             self.close()
             self._pool, self._size = ThreadPoolExecutor(parts, "train-part"), parts
-        futures = [self._pool.submit(step_fn, b, w) for b, w in split_batch(batch, parts)]
+        futures = [self._pool.submit(self._backward, loss_fn, b, w)
+                   for b, w in split_batch(batch, parts)]
         return sum(f.result() for f in futures)
 
     def close(self) -> None:

@@ -312,11 +312,9 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     tuner = AdaptiveThreads() if device == "cpu" and not threads else None
     run_parts = BatchParts()
 
-    def forward_backward(part: dict, weight: float) -> float:
+    def batch_loss(part: dict) -> torch.Tensor:
         with torch.autocast(device, dtype=torch.bfloat16, enabled=precision == "bf16"):
-            loss, _ = policy.forward(part)
-        (loss if weight == 1.0 else loss * weight).backward()
-        return float(loss.detach()) * weight
+            return policy.forward(part)[0]
 
     bar = tqdm(total=steps, initial=step, desc=f"train {preset.name}", unit="step",
                disable=not progress, dynamic_ncols=True)
@@ -328,7 +326,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             idx = rng.choice(demos.starts, size=batch_size)
             batch = pre(gather_batch(demos, idx, n_obs, horizon))
             optimizer.zero_grad(set_to_none=True)
-            loss_val = run_parts(forward_backward, batch, tuner.parts if tuner else 1)
+            loss_val = run_parts(batch_loss, batch, tuner.parts if tuner else 1)
             optimizer.step()
             scheduler.step()
             ema.step(policy.parameters())

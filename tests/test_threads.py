@@ -101,19 +101,19 @@ def test_batch_parts_sum_to_the_whole_batch_gradient():
     model = torch.nn.Sequential(torch.nn.Linear(5, 16), torch.nn.Tanh(), torch.nn.Linear(16, 2))
     batch = {"x": torch.randn(10, 5), "y": torch.randn(10, 2), "task": "pick"}
 
-    def step_fn(part: dict, weight: float) -> float:
+    def loss_fn(part: dict) -> torch.Tensor:
         assert part["task"] == "pick"  # non-tensor entries pass through
-        loss = torch.nn.functional.mse_loss(model(part["x"]), part["y"])
-        (loss * weight).backward()
-        return float(loss.detach()) * weight
+        return torch.nn.functional.mse_loss(model(part["x"]), part["y"])
 
-    whole = step_fn(batch, 1.0)
+    whole = loss_fn(batch)
+    whole.backward()
+    whole = float(whole.detach())
     want = [p.grad.clone() for p in model.parameters()]
     runner = BatchParts()
     try:
         for parts in (2, 3, 10):
             model.zero_grad(set_to_none=True)
-            got = runner(step_fn, batch, parts)
+            got = runner(loss_fn, batch, parts)
             assert got == pytest.approx(whole, rel=1e-6)
             for g, w in zip((p.grad for p in model.parameters()), want, strict=True):
                 torch.testing.assert_close(g, w, rtol=1e-5, atol=1e-7)
