@@ -80,7 +80,7 @@ def _train(args: argparse.Namespace) -> int:
     try:
         r = train(Path(args.dataset), Path(args.out), preset_name=args.preset, steps=args.steps,
                   batch_size=args.batch_size, resume=args.resume, precision=args.precision,
-                  device=args.device, threads=args.threads)
+                  device=args.device, threads=args.threads, stop_at=args.stop_at)
     except (TrainError, PresetError) as e:
         print(f"so101-sim train: {e}", file=sys.stderr)
         return 2
@@ -259,6 +259,10 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--out", required=True, help="run folder (checkpoints, log, final policy)")
     tr.add_argument("--steps", type=int, default=None, help="total steps (default: preset)")
     tr.add_argument("--batch-size", type=int, default=None, help="default: preset")
+    tr.add_argument("--stop-at", type=int, default=None, metavar="STEP",
+                    help="pause at this step with a checkpoint; the schedule stays sized for "
+                         "--steps, so --resume later continues the same run (for comparing runs "
+                         "at equal steps)")
     tr.add_argument("--resume", action="store_true",
                     help="continue from the last checkpoint in --out, exactly")
     tr.add_argument("--threads", type=int, default=None,

@@ -171,13 +171,15 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
           batch_size: int | None = None, resume: bool = False, keep_checkpoints: int = 3,
           progress: bool = True, log_every: int | None = None,
           precision: str = "fp32", device: str = "cpu",
-          threads: int | None = None) -> TrainResult:
+          threads: int | None = None, stop_at: int | None = None) -> TrainResult:
     """Train `preset_name` on the dataset at `dataset_dir`; see the module docstring.
 
     `device` is auto|cpu|cuda|mps (`devices.resolve_device`); `precision` fp32|bf16|auto.
     `threads`: torch CPU threads, fixed; None on the CPU: fitted to the cores other
     processes leave (`train_threads.AdaptiveThreads`), so a busy neighbour does not stall
     the thread pool.
+    `stop_at`: save and return at this step while the schedule stays sized for `steps`, so a
+    short run is the prefix of the long one (`resume=True` later continues it exactly).
     """
     from diffusers.optimization import get_scheduler
     from diffusers.training_utils import EMAModel
@@ -198,6 +200,10 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     precision = resolve_precision(precision, device)
     if steps < 1 or batch_size < 1:
         raise TrainError(f"--steps {steps} and --batch-size {batch_size} must both be >= 1")
+    if stop_at is not None and not 1 <= stop_at <= steps:
+        raise TrainError(f"--stop-at {stop_at} is outside 1..--steps ({steps}); give the step "
+                         "to pause at, at most the run's total steps")
+    end = steps if stop_at is None else stop_at
     out = Path(out)
     existing = list_checkpoints(out)
     if existing and not resume:
@@ -266,6 +272,9 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             print(f"so101-sim train: total steps changed {state['steps']} -> {steps}; the cosine "
                   "schedule is stretched from here on")
         truncate_log(log_path, step)
+        if stop_at is not None and step >= stop_at:
+            raise TrainError(f"--stop-at {end}: {out} is already at step {step}; give a later "
+                             "--stop-at, or leave it out to train to --steps")
     start_step = step
     out.mkdir(parents=True, exist_ok=True)
     demos = load_demos(dataset, preset, out / "frame_cache")
@@ -321,7 +330,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     t0, loss_val, window = time.perf_counter(), math.nan, []
     log = log_path.open("a")
     try:
-        while step < steps and stop["signal"] is None:
+        while step < end and stop["signal"] is None:
             t_step = time.perf_counter()
             idx = rng.choice(demos.starts, size=batch_size)
             batch = pre(gather_batch(demos, idx, n_obs, horizon))
@@ -334,7 +343,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             window.append((loss_val, time.perf_counter() - t_step))
             if tuner is not None:
                 tuner.after_step(step, window[-1][1])
-            if step % log_every == 0 or step == steps:
+            if step % log_every == 0 or step == end:
                 mean_loss = float(np.mean([w[0] for w in window]))
                 sps = batch_size * len(window) / sum(w[1] for w in window)
                 log.write(json.dumps({"step": step, "loss": round(mean_loss, 6),
@@ -349,7 +358,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                 bar.set_postfix(loss=f"{mean_loss:.4f}", samples_s=f"{sps:.1f}")
                 window.clear()
             bar.update(1)
-            if step % ts.checkpoint_every == 0 and step < steps:
+            if step % ts.checkpoint_every == 0 and step < end:
                 save(step, wall_before + time.perf_counter() - t0, loss_val)
         wall = wall_before + time.perf_counter() - t0
         ck = save(step, wall, loss_val)
@@ -362,9 +371,11 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     if stop["signal"] is not None:
         raise KeyboardInterrupt(f"stopped by signal {stop['signal']} at step {step}; "
                                 f"checkpoint {ck}")
-    final = out / "pretrained_model"
-    shutil.rmtree(final, ignore_errors=True)
-    shutil.copytree(ck / "pretrained_model", final)
+    final = ck / "pretrained_model"
+    if step == steps:  # the run's own policy; a pause at --stop-at leaves only its checkpoint
+        final = out / "pretrained_model"
+        shutil.rmtree(final, ignore_errors=True)
+        shutil.copytree(ck / "pretrained_model", final)
     run_s = time.perf_counter() - t0
     return TrainResult(out=out, step=step, final_loss=loss_val, wall_s=wall,
                        samples_per_s=(step - start_step) * batch_size / max(run_s, 1e-9),

@@ -131,6 +131,27 @@ def _weights(path: Path) -> dict[str, torch.Tensor]:
     return load_file(path / "model.safetensors")
 
 
+def test_stop_at_is_the_prefix_of_the_long_run(dataset: Path, tiny: Path,
+                                               tmp_path: Path) -> None:
+    """--stop-at pauses on the long run's schedule; --resume then finishes it exactly."""
+    fixed = {"progress": False, "threads": 1, "log_every": 1}
+    straight = train(dataset, tmp_path / "a", preset_name=str(tiny), steps=6, **fixed)
+    paused = train(dataset, tmp_path / "b", preset_name=str(tiny), steps=6, stop_at=3, **fixed)
+    assert paused.step == 3 and paused.pretrained_dir.parent.name == "step_0000003"
+    assert not (tmp_path / "b" / "pretrained_model").exists()
+    log_a = [json.loads(x) for x in (tmp_path / "a" / "train_log.jsonl").read_text().splitlines()]
+    log_b = [json.loads(x) for x in (tmp_path / "b" / "train_log.jsonl").read_text().splitlines()]
+    assert [r["lr"] for r in log_b] == [r["lr"] for r in log_a[:3]]
+    with pytest.raises(TrainError, match="already at step 3"):
+        train(dataset, tmp_path / "b", preset_name=str(tiny), steps=6, stop_at=2, resume=True,
+              **fixed)
+    with pytest.raises(TrainError, match="is outside 1"):
+        train(dataset, tmp_path / "c", preset_name=str(tiny), steps=6, stop_at=7, **fixed)
+    resumed = train(dataset, tmp_path / "b", preset_name=str(tiny), steps=6, resume=True, **fixed)
+    a, b = _weights(straight.pretrained_dir), _weights(resumed.pretrained_dir)
+    assert resumed.step == 6 and all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_resume_continues_exactly(dataset: Path, tiny: Path, tmp_path: Path) -> None:
     # a fixed thread count: the adaptive one may cut steps into parts if the machine is busy
     fixed = {"progress": False, "threads": 1}
