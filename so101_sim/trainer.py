@@ -325,7 +325,8 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
         with torch.autocast(device, dtype=torch.bfloat16, enabled=precision == "bf16"):
             return policy.forward(part)[0]
 
-    bar = tqdm(total=steps, initial=step, desc=f"train {preset.name}", unit="step",
+    desc = f"train {preset.name}" + (f" (to {end} of {steps})" if end < steps else "")
+    bar = tqdm(total=end, initial=step, desc=desc, unit="step",
                disable=not progress, dynamic_ncols=True)
     t0, loss_val, window = time.perf_counter(), math.nan, []
     log = log_path.open("a")
