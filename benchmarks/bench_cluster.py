@@ -41,7 +41,7 @@ def child_main(job: dict[str, Any]) -> None:
     if job["backend"] == "ray":
         import ray
 
-        from so101_sim.workers.local import cpu_count
+        from so101_sim.utils.devices import cpu_count
 
         t = time.perf_counter()
         ray.init(address="local", num_cpus=cpu_count(), include_dashboard=False,
@@ -49,7 +49,7 @@ def child_main(job: dict[str, Any]) -> None:
         runtime_s = time.perf_counter() - t
     out = Path(job["out"])
     if job["kind"] == "record":
-        from so101_sim.recording import record
+        from so101_sim.record import record
 
         t = time.perf_counter()
         s = record(out, job["episodes"], image_size=tuple(job["image_size"]),

@@ -55,7 +55,7 @@ def timed(chunks: Iterator[np.ndarray],
     """(decode wall s, decode CPU s, resize wall s, first chunk as CHW) for one pass; frames
     are dropped as they go. CPU seconds (all threads of this process) are the steadier number
     on a core shared with other jobs."""
-    from so101_sim.image_pipeline import resize_frames
+    from so101_sim.utils.image_pipeline import resize_frames
 
     decode_s = decode_cpu = resize_s = 0.0
     first = None

@@ -168,8 +168,8 @@ def job_renderer(job: dict[str, Any]) -> dict[str, Any]:
             notes.append(f"offscreen buffer raised {ow}x{oh} -> "
                          f"{model.vis.global_.offwidth}x{model.vis.global_.offheight}")
     else:
-        from so101_sim.scene import build_model, mesh_grid_for
-        from so101_sim.task import load_task
+        from so101_sim.sim.scene import build_model, mesh_grid_for
+        from so101_sim.tasks import load_task
 
         task = load_task("pick_place")
         model, visuals = build_model(task, mesh_grid_for(task, w))

@@ -35,7 +35,7 @@ BIN = Path(sys.executable).parent
 
 def short_task(out_dir: Path, max_steps: int) -> Path:
     """pick_place with episodes cut to `max_steps` (for --quick)."""
-    from so101_sim.paths import envs_dir
+    from so101_sim.utils.paths import envs_dir
 
     text = re.sub(r"(?m)^max_steps\s*=\s*\d+", f"max_steps = {max_steps}",
                   (envs_dir() / "pick_place.toml").read_text())
@@ -87,7 +87,7 @@ def timed(cmd: list[str]) -> float:
 
 
 def rate(k: float, n: int) -> str:
-    from so101_sim.stats import wilson_interval
+    from so101_sim.harness.stats import wilson_interval
 
     lo, hi = wilson_interval(round(k), n)
     return f"{round(k)}/{n} = {100 * k / n:.1f}% [{100 * lo:.1f}, {100 * hi:.1f}]"
@@ -145,7 +145,7 @@ def main() -> None:
     w_h, a_h = run_harness(ckpt, work / "harness_b", n, k, min(10, n), inp, task)
     w_l, a_l = run_lerobot_eval(ckpt, work / "lerobot_b", n, k, inp, task, episode_length)
     k_h, k_l = a_h["n_success"], a_l["pc_success"] * n / 100
-    from so101_sim.stats import wilson_interval
+    from so101_sim.harness.stats import wilson_interval
 
     lo_h, hi_h = wilson_interval(round(k_h), n)
     lo_l, hi_l = wilson_interval(round(k_l), n)

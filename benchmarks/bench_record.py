@@ -42,7 +42,7 @@ def child_main(job_json: str) -> None:
     """Record one configuration and print its summary as a tagged JSON line."""
     import lerobot.datasets.lerobot_dataset  # noqa: F401  (a fixed import cost, not timed)
 
-    from so101_sim.recording import record
+    from so101_sim.record import record
 
     job = json.loads(job_json)
     t0 = time.perf_counter()

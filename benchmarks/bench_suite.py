@@ -34,7 +34,7 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     """Step one env configuration for `job["seconds"]` after a warm-up; report steps/s."""
     import numpy as np
 
-    from so101_sim.env import SO101Env
+    from so101_sim.sim import SO101Env
 
     env = SO101Env(job["task"], image_size=tuple(job["size"]), cameras=tuple(job["cameras"]))
     actions = []

@@ -26,7 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from so101_sim.presets import load_preset  # noqa: E402
+from so101_sim.train.presets import load_preset  # noqa: E402
 
 # DiffusionConfig fields passed to lerobot-train as --policy.<field>=<value>.
 _SKIP = {"normalization_mapping", "resize_shape", "crop_shape", "crop_ratio", "device",
@@ -47,7 +47,7 @@ def run_ours(dataset: Path, preset: str, steps: int, batch: int, work: Path,
     if precision != "fp32":  # reuse the fp32 run's decoded frames
         out.mkdir()
         (out / "frame_cache").symlink_to(work / "ours_fp32" / "frame_cache")
-    code = ("import sys, json; from pathlib import Path; from so101_sim.trainer import train; "
+    code = ("import sys, json; from pathlib import Path; from so101_sim.train import train; "
             f"r = train(Path({str(dataset)!r}), Path({str(out)!r}), preset_name={preset!r}, "
             f"steps={steps}, batch_size={batch}, progress=False, log_every=1, "
             f"precision={precision!r})")

@@ -6,7 +6,7 @@ Each variant runs in its own child process (fresh torch, same seed, same synthet
 as `so101-sim train` feeds the policy) one after another in this one run, so the ratios compare
 like with like: fp32, bf16 autocast, bf16 + channels_last memory format, bf16 + torch.compile
 (inductor on CPU; compile time is reported apart from the steady state), 1 vs all threads, and
-the batch in 2 parts of one thread each (`so101_sim.train_threads.BatchParts`, what `train`
+the batch in 2 parts of one thread each (`so101_sim.train.threads.BatchParts`, what `train`
 does beside a busy neighbour). `--busy` times every variant beside one spinning process too.
 The first `--warmup` steps are excluded. Pause other CPU work while it runs.
 """
@@ -38,8 +38,8 @@ def child(preset_name: str, steps: int, warmup: int, opts: dict) -> dict:
     sys.path.insert(0, str(ROOT))
     from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
 
-    from so101_sim.presets import load_preset, make_config, policy_features
-    from so101_sim.train_threads import BatchParts
+    from so101_sim.train.presets import load_preset, make_config, policy_features
+    from so101_sim.train.threads import BatchParts
 
     if opts.get("threads"):
         torch.set_num_threads(opts["threads"])

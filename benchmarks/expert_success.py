@@ -17,10 +17,10 @@ import time
 
 from tqdm import tqdm
 
-from so101_sim.env import PickPlaceEnv
 from so101_sim.expert import ScriptedExpert
-from so101_sim.recording import expert_options, run_episode
-from so101_sim.stats import wilson_interval
+from so101_sim.harness.stats import wilson_interval
+from so101_sim.record import expert_options, run_episode
+from so101_sim.sim import PickPlaceEnv
 
 
 def main() -> None:
@@ -35,7 +35,8 @@ def main() -> None:
     args = parser.parse_args()
 
     env = PickPlaceEnv(task=args.task, obs_type="state")
-    expert = ScriptedExpert(args.task, **expert_options(args.recover, args.grasp_clearance))
+    expert = ScriptedExpert(env.task, model=env.model,
+                            **expert_options(args.recover, args.grasp_clearance))
     modes: collections.Counter[str] = collections.Counter()
     retries: collections.Counter[str] = collections.Counter()
     recovered = 0

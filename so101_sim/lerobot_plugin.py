@@ -9,7 +9,7 @@ below with draccus before the command line is parsed; without it, add
         --env.image_height=60 --env.image_width=80 \\
         --policy.path=outputs/train/.../pretrained_model --eval.n_episodes=50 --eval.batch_size=1
 
-``--env.task`` is any task ``so101_sim.task.load_task`` accepts (a name in envs/ or a TOML
+``--env.task`` is any task ``so101_sim.tasks.spec.load_task`` accepts (a name in envs/ or a TOML
 path); ``fps`` and ``episode_length`` default to the task's.
 
 In Python, ``import so101_sim.lerobot_plugin`` and then
@@ -29,9 +29,9 @@ from lerobot.envs.utils import NEW_ROLLOUT_OPTION
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
 from so101_sim import ENV_ID
-from so101_sim.env import OBS_TYPES, env_state_size
-from so101_sim.task import ALL_CAMERAS, load_task
-from so101_sim.units import FEATURE_NAMES
+from so101_sim.sim import OBS_TYPES, env_state_size
+from so101_sim.tasks import ALL_CAMERAS, load_task
+from so101_sim.utils.units import FEATURE_NAMES
 
 # lerobot 0.6.1's `load_plugin` lists the submodules of whatever `discover_packages_path`
 # names through `module.__path__`, so a plain module raises AttributeError there. An empty
@@ -45,7 +45,7 @@ ACTION_DIM = len(FEATURE_NAMES)
 @EnvConfig.register_subclass(ENV_TYPE)
 @dataclass
 class SO101PickPlaceEnvConfig(EnvConfig):
-    """LeRobot config for the SO-101 pick-and-place env (see ``so101_sim.env.PickPlaceEnv``).
+    """LeRobot config for the SO-101 pick-and-place env (see ``so101_sim.sim.env.PickPlaceEnv``).
 
     ``features`` are derived from ``obs_type`` and the image size in ``__post_init__`` so a
     policy built from this config (``make_policy(env_cfg=...)``) expects exactly what the env

@@ -7,12 +7,13 @@ so a policy as good as its baseline fails CI in at most 1% of runs). It prints t
 95% Wilson interval, the baseline and the p-value either way.
 
 Choosing the baseline: a rate measured as k/n is itself uncertain; pass the lower end of its
-Wilson interval (``so101_sim.stats.wilson_interval(k, n)[0]``), e.g. 500/500 -> 0.992, so the
-baseline's own noise cannot fail the test. A baseline of exactly 1.0 fails on any failure.
+Wilson interval (``so101_sim.harness.stats.wilson_interval(k, n)[0]``), e.g. 500/500 ->
+0.992, so the baseline's own noise cannot fail the test. A baseline of exactly 1.0 fails on
+any failure.
 
 Choosing N: the test detects a drop only with some probability (power). The smallest N that
 catches a drop from ``baseline`` to ``true_rate`` with 80% power at alpha = 0.01
-(``so101_sim.stats.episodes_needed``):
+(``so101_sim.harness.stats.episodes_needed``):
 
     baseline -> true rate    N      |  baseline -> true rate    N
     0.99 -> 0.90            42      |  0.90 -> 0.80           122
@@ -27,7 +28,7 @@ The paired form, ``assert_not_worse(candidate, baseline_run)``, reruns the seeds
 McNemar). It needs no well-measured baseline rate, and it needs fewer episodes than the
 one-sample test whenever that test's baseline is itself measured on N seeds; against a
 baseline known exactly it wins only when the policies disagree on few seeds beyond the lost
-ones (README, "Comparing two policies"; ``so101_sim.stats.paired_episodes_needed``).
+ones (README, "Comparing two policies"; ``so101_sim.harness.stats.paired_episodes_needed``).
 """
 
 from __future__ import annotations
@@ -37,8 +38,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from so101_sim.recording import EVAL_SEED_START
-from so101_sim.stats import p_value_below, wilson_interval
+from so101_sim.dataset import EVAL_SEED_START
+from so101_sim.harness.stats import p_value_below, wilson_interval
 
 
 @dataclass(frozen=True)
@@ -135,7 +136,7 @@ def assert_not_worse(candidate: Any, baseline_run: str | Path, *, alpha: float =
     (pass the .toml path if the baseline ran a task file outside envs/)."""
     from so101_sim.harness import evaluate
     from so101_sim.harness.compare import check_comparable, load_run, paired_result
-    from so101_sim.stats import mcnemar_p_value
+    from so101_sim.harness.stats import mcnemar_p_value
 
     if not 0.0 < alpha < 0.5:
         raise ValueError(f"alpha={alpha} is invalid; expected a small level such as 0.01")

@@ -11,7 +11,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numpy as np
 import pytest
 
-from so101_sim.env import PickPlaceEnv
+from so101_sim.sim import PickPlaceEnv
 
 REST = np.array([-10.374, -81.670, 77.846, 2.681, 123.209, 6.495], dtype=np.float32)
 SMALL = (48, 64)

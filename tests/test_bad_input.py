@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from so101_sim.env import PickPlaceEnv
-from so101_sim.task import TaskSpecError, load_task
+from so101_sim.sim import PickPlaceEnv
+from so101_sim.tasks import TaskSpecError, load_task
 
 TASK = Path(__file__).parents[1] / "envs" / "pick_place.toml"
 
@@ -106,7 +106,7 @@ def test_unwritable_out_is_one_line(tmp_path: Path) -> None:
 
 
 def test_unusable_mujoco_gl_lists_what_works() -> None:
-    code = "import so101_sim.env"
+    code = "import so101_sim.sim.env"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                        env={**os.environ, "MUJOCO_GL": "nonsense"})
     assert r.returncode != 0
@@ -120,7 +120,7 @@ def test_unusable_mujoco_gl_lists_what_works() -> None:
 
 
 def test_corrupt_train_log_is_skipped_by_export(tmp_path: Path, capsys) -> None:
-    from so101_sim.export import loss_curve
+    from so101_sim.harness.export import loss_curve
 
     log = tmp_path / "train_log.jsonl"
     rows = [{"step": i, "loss": 1.0 / i, "lr": 1e-4, "samples_per_s": 10} for i in (1, 2, 3)]

@@ -12,7 +12,7 @@ import pytest
 from so101_sim.cli import main
 from so101_sim.harness import PolicyInfo, StepPolicy, evaluate
 from so101_sim.harness.compare import compare_runs, seed_ranges
-from so101_sim.stats import (
+from so101_sim.harness.stats import (
     episodes_needed,
     episodes_needed_measured,
     mcnemar_p_value,
@@ -20,7 +20,7 @@ from so101_sim.stats import (
     paired_episodes_needed,
     paired_power,
 )
-from so101_sim.task import load_task
+from so101_sim.tasks import load_task
 from so101_sim.testing import assert_not_worse
 
 

@@ -21,9 +21,10 @@ import numpy as np
 import pytest
 from dataset_columns import columns_by_seed
 
+from so101_sim.dataset import DEFAULT_REPO_ID, stored_seeds
+from so101_sim.dataset.store import CRASH_ENV, SCRATCH, SPOOL
 from so101_sim.harness.results import EpisodeRecord, RunDir
-from so101_sim.record_store import CRASH_ENV, SCRATCH, SPOOL
-from so101_sim.recording import DEFAULT_REPO_ID, record, stored_seeds
+from so101_sim.record import record
 
 SMALL = (48, 64)
 N = 4

@@ -15,8 +15,8 @@ from conftest import REST, SMALL
 from gymnasium.utils.env_checker import check_env
 
 import so101_sim
-from so101_sim.env import PickPlaceEnv
-from so101_sim.units import FEATURE_NAMES, lerobot_to_radians, radians_to_lerobot
+from so101_sim.sim import PickPlaceEnv
+from so101_sim.utils.units import FEATURE_NAMES, lerobot_to_radians, radians_to_lerobot
 
 
 # ------------------------------------------------------------------------------------ units
@@ -133,7 +133,7 @@ def test_same_seed_same_actions_bitwise_identical_across_processes(pixel_env):
         sys.path.insert(0, sys.argv[1])
         from conftest import SMALL
         from test_env import _rollout_digest
-        from so101_sim.env import PickPlaceEnv
+        from so101_sim.sim import PickPlaceEnv
         env = PickPlaceEnv(image_size=SMALL, obs_type="pixels_agent_pos_env_state")
         print(_rollout_digest(env, seed=7))
     """)
@@ -216,7 +216,7 @@ def test_bad_constructor_arguments():
 
 # ------------------------------------------------------------------------- episode ends
 def test_truncates_at_step_limit_with_never_grasped(tmp_path):
-    src = (so101_sim.paths.envs_dir() / "pick_place.toml").read_text()
+    src = (so101_sim.utils.paths.envs_dir() / "pick_place.toml").read_text()
     task = tmp_path / "short.toml"
     task.write_text(src.replace("max_steps = 300", "max_steps = 5"))
     env = PickPlaceEnv(task=task, obs_type="state")

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from so101_sim.recording import record
+from so101_sim.record import record
 
 SMALL = (48, 64)
 SHIPPED = Path(__file__).parents[1] / "policy" / "pick_place_diffusion"
@@ -116,7 +116,7 @@ def test_cli_on_the_shipped_checkpoint(dataset: Path, tmp_path: Path) -> None:
 
 def test_refuses_bad_input(dataset: Path, tmp_path: Path) -> None:
     from so101_sim.explain import ExplainError, explain
-    from so101_sim.trust import UntrustedCheckpointError
+    from so101_sim.utils.trust import UntrustedCheckpointError
 
     with pytest.raises(ExplainError, match="--episode 5"):
         explain(dataset, episode=5, write=False)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from so101_sim.env import PickPlaceEnv
 from so101_sim.expert import ScriptedExpert
+from so101_sim.sim import PickPlaceEnv
 
 
 def _run(env: PickPlaceEnv, expert: ScriptedExpert, seed: int, options=None, trace=None):
@@ -24,7 +24,7 @@ def _run(env: PickPlaceEnv, expert: ScriptedExpert, seed: int, options=None, tra
 @pytest.mark.parametrize("size", [0.025, 0.03])
 def test_gripper_holds_cube_through_lift_and_carry(tmp_path, size):
     """The cube rides in the closed gripper: lifted >= 5 cm, in-hand drift < 4 mm."""
-    from so101_sim.paths import envs_dir
+    from so101_sim.utils.paths import envs_dir
 
     src = (envs_dir() / "pick_place.toml").read_text()
     task = tmp_path / "cube.toml"

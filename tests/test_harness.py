@@ -22,7 +22,7 @@ import pytest
 
 from so101_sim.cli import main
 from so101_sim.harness import ChunkRequest, PolicyInfo, evaluate, expert_policy, load_policy
-from so101_sim.harness.lerobot_policy import LeRobotPolicy
+from so101_sim.harness.policies.lerobot import LeRobotPolicy
 
 sys.path.insert(0, str(Path(__file__).parent))
 from tiny_policy import make_tiny_diffusion_checkpoint, short_task
@@ -204,10 +204,10 @@ class _CountThreads(_HoldStill):
 def test_policy_threads_default_to_half_the_cores_and_are_restored(short, tmp_path):
     import torch
 
-    from so101_sim.devices import cpu_cores, eval_policy_threads
+    from so101_sim.utils.devices import cpu_count, eval_policy_threads
 
     before = torch.get_num_threads()
-    assert eval_policy_threads() == max(1, cpu_cores() // 2)
+    assert eval_policy_threads() == max(1, cpu_count() // 2)
     for asked, expected in ((None, eval_policy_threads()), (1, 1), (3, 3)):
         policy = _CountThreads()
         evaluate(policy, task=str(short), episodes=2, n_envs=2, videos=0, report=False,

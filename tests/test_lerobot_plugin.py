@@ -22,7 +22,7 @@ from lerobot.envs.utils import (
 )
 
 from so101_sim.lerobot_plugin import ENV_TYPE, SO101PickPlaceEnvConfig
-from so101_sim.task import load_task
+from so101_sim.tasks import load_task
 
 H, W = 96, 128
 EPISODE_LENGTH = 4

@@ -1,4 +1,4 @@
-"""Tests for so101_sim.meshes: STL reading, vertex clustering, mesh lookup and caching."""
+"""Tests for so101_sim.sim.meshes: STL reading, vertex clustering, mesh lookup and caching."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from so101_sim import meshes
+from so101_sim.sim import meshes
 
 # Unit cube: 8 corners, 12 outward-wound triangles.
 CUBE_V = np.array(

@@ -10,7 +10,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from so101_sim.env import SO101Env
+from so101_sim.sim import SO101Env
 
 JOINTS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")
 BODIES = {"base": "base", "shoulder": "shoulder", "upper_arm": "upper_arm",

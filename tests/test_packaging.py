@@ -73,6 +73,6 @@ def test_cli_rejects_bad_image_size(capsys):
 
 
 def test_import_does_not_load_torch():
-    code = "import sys, so101_sim, so101_sim.env; print('torch' in sys.modules)"
+    code = "import sys, so101_sim, so101_sim.sim.env; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"

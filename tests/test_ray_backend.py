@@ -22,8 +22,9 @@ import pytest
 
 ray = pytest.importorskip("ray")
 
+from so101_sim.dataset import stored_seeds  # noqa: E402
 from so101_sim.harness import evaluate  # noqa: E402
-from so101_sim.recording import record, stored_seeds  # noqa: E402
+from so101_sim.record import record  # noqa: E402
 from so101_sim.workers import start_pool  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -79,7 +80,7 @@ def test_expert_on_ray_matches_local(expert_local, tmp_path) -> None:
 
 
 def test_diffusion_policy_on_ray_matches_local(tmp_path) -> None:
-    from so101_sim.harness.lerobot_policy import LeRobotPolicy
+    from so101_sim.harness.policies.lerobot import LeRobotPolicy
 
     ckpt = make_tiny_diffusion_checkpoint(tmp_path / "ckpt", input_size=SMALL,
                                           dataset_image_size=(96, 128))

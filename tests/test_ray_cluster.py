@@ -24,8 +24,9 @@ import pytest
 
 pytest.importorskip("ray")
 
+from so101_sim.dataset import stored_seeds
 from so101_sim.harness import evaluate
-from so101_sim.recording import record, stored_seeds
+from so101_sim.record import record
 
 BIN = Path(sys.executable).parent
 KEYS = ("seed", "success", "failure_mode", "steps", "actions_sha")

@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 import torch
 
-from so101_sim.recording import DEFAULT_REPO_ID, SIDECAR, record, replay, stored_seeds
-from so101_sim.units import FEATURE_NAMES
+from so101_sim.dataset import DEFAULT_REPO_ID, SIDECAR, stored_seeds
+from so101_sim.record import record, replay
+from so101_sim.utils.units import FEATURE_NAMES
 
 SMALL = (48, 64)
 FPS = 30
@@ -185,8 +186,8 @@ def dart_datasets(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]
 
 
 def test_dart_labels_are_clean_and_noise_is_seeded(dart_datasets: tuple[Path, Path]) -> None:
-    from so101_sim.env import PickPlaceEnv
     from so101_sim.expert import ScriptedExpert
+    from so101_sim.sim import PickPlaceEnv
 
     cols = ["action", "action_executed", "observation.state"]
     a, b = (_episodes(root, cols) for root in dart_datasets)

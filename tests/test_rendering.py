@@ -10,15 +10,14 @@ import sys
 import mujoco
 import pytest
 
-from so101_sim import scene
-from so101_sim.env import PickPlaceEnv
-from so101_sim.rendering import select_gl_backend
-from so101_sim.task import load_task
+from so101_sim.sim import PickPlaceEnv, scene
+from so101_sim.sim.rendering import select_gl_backend
+from so101_sim.tasks import load_task
 
 
 def test_unset_mujoco_gl_picks_a_headless_backend_and_says_which():
     env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
-    code = ("from so101_sim.env import PickPlaceEnv\n"
+    code = ("from so101_sim.sim.env import PickPlaceEnv\n"
             "env = PickPlaceEnv(image_size=(32, 32)); env.reset(seed=0)\n"
             "import os; print('chosen', os.environ['MUJOCO_GL'])")
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,

@@ -26,10 +26,11 @@ import numpy as np
 import pytest
 
 from so101_sim.cli import main
+from so101_sim.dataset import stored_seeds
+from so101_sim.dataset.store import CRASH_ENV, SCRATCH, SPOOL, Spool
 from so101_sim.harness import evaluate, expert_policy
 from so101_sim.harness.rollouts import DEFAULT_REPO_ID
-from so101_sim.record_store import CRASH_ENV, SCRATCH, SPOOL, Spool
-from so101_sim.recording import replay, stored_seeds
+from so101_sim.record import replay
 
 sys.path.insert(0, str(Path(__file__).parent))
 from tiny_policy import short_task
@@ -148,7 +149,7 @@ def test_rollout_dataset_holds_every_episode_as_executed(runs):
     outcome = {e["seed"]: e for e in runs["saved"]["per_episode"]}
     assert [outcome[s]["success"] for s in SEEDS] == [True, False, True]
 
-    from so101_sim.env import PickPlaceEnv
+    from so101_sim.sim import PickPlaceEnv
 
     env = PickPlaceEnv(obs_type="state")
     low, high = env.action_low, env.action_high
@@ -168,8 +169,8 @@ def test_training_reads_the_rollout_dataset(runs):
     import torch
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from so101_sim.presets import load_preset
-    from so101_sim.trainer import load_demos
+    from so101_sim.train.presets import load_preset
+    from so101_sim.train.trainer import load_demos
 
     root = runs["base"] / "ds"
     ds = LeRobotDataset(DEFAULT_REPO_ID, root=root, delta_timestamps={

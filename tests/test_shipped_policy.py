@@ -7,9 +7,9 @@ import json
 
 import pytest
 
-from so101_sim.paths import shipped_policy_dir
-from so101_sim.stats import wilson_interval
+from so101_sim.harness.stats import wilson_interval
 from so101_sim.testing import assert_success_rate
+from so101_sim.utils.paths import shipped_policy_dir
 
 SHIPPED = shipped_policy_dir()
 pytestmark = pytest.mark.skipif(not (SHIPPED / "model.safetensors").is_file(),

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from so101_sim.paths import envs_dir
-from so101_sim.task import TaskSpecError, available_tasks, load_task
+from so101_sim.tasks import TaskSpecError, available_tasks, load_task
+from so101_sim.utils.paths import envs_dir
 
 
 def _write(tmp_path, old: str, new: str):

@@ -7,8 +7,8 @@ import hashlib
 import numpy as np
 import pytest
 
-from so101_sim.env import PickPlaceEnv
 from so101_sim.expert import ScriptedExpert
+from so101_sim.sim import PickPlaceEnv
 
 # Captured before the suite existed (seeds 0..9 of pick_place, the scripted expert with its
 # defaults, state-only env; first front/side frames at 96x128): the suite must not change a
@@ -83,7 +83,7 @@ TASKS = {"pick_place": ("pick_place", 10), "pick_place_anywhere": ("pick_place",
 
 
 def test_six_tasks_load_by_name():
-    from so101_sim.task import available_tasks, load_task
+    from so101_sim.tasks import available_tasks, load_task
 
     assert set(TASKS) <= set(available_tasks())
     for name, (kind, state_size) in TASKS.items():
@@ -120,12 +120,12 @@ def test_expert_solves_each_task(name):
 
 
 def test_failure_modes_are_per_task():
-    from so101_sim.outcomes import FAILURE_MODES
+    from so101_sim.tasks import failure_modes
 
-    assert FAILURE_MODES["pick_place"] == ("never_grasped", "dropped", "misplaced", "timeout",
+    assert failure_modes("pick_place") == ("never_grasped", "dropped", "misplaced", "timeout",
                                            "sim_unstable")
     for kind in ("lift", "stack", "tidy"):
-        assert {"never_grasped", "timeout", "sim_unstable"} <= set(FAILURE_MODES[kind])
+        assert {"never_grasped", "timeout", "sim_unstable"} <= set(failure_modes(kind))
     env = PickPlaceEnv("tidy", obs_type="state")
     env.reset(seed=0)
     rest = np.array([-10.374, -81.670, 77.846, 2.681, 123.209, 6.495], dtype=np.float32)
@@ -135,8 +135,8 @@ def test_failure_modes_are_per_task():
 
 
 def test_task_spec_errors_name_the_value(tmp_path):
-    from so101_sim.paths import envs_dir
-    from so101_sim.task import TaskSpecError, load_task
+    from so101_sim.tasks import TaskSpecError, load_task
+    from so101_sim.utils.paths import envs_dir
 
     src = (envs_dir() / "pick_place_dr.toml").read_text()
     for old, new, match in [
@@ -178,7 +178,7 @@ def test_wrist_camera_shapes_and_same_pass():
 
 
 def test_cameras_per_task_in_toml(tmp_path):
-    from so101_sim.paths import envs_dir
+    from so101_sim.utils.paths import envs_dir
 
     path = tmp_path / "wrist_only.toml"
     path.write_text((envs_dir() / "pick_place.toml").read_text().replace(
@@ -228,7 +228,7 @@ def test_domain_randomization_is_deterministic_per_seed():
 
 
 def test_domain_randomization_ranges_reach_the_model():
-    from so101_sim.task import load_task
+    from so101_sim.tasks import load_task
 
     r = load_task("pick_place_dr").randomize
     env = PickPlaceEnv("pick_place_dr", obs_type="state")
@@ -252,7 +252,7 @@ def test_domain_randomization_ranges_reach_the_model():
 def test_contact_sheet_writes_one_png(tmp_path):
     from PIL import Image
 
-    from so101_sim.demo import contact_sheet, parse_grid
+    from so101_sim.record.demo import contact_sheet, parse_grid
 
     path = contact_sheet(tmp_path, "pick_place_dr", parse_grid("2x3"), image_size=(32, 48))
     assert Image.open(path).size == (3 * 48, 2 * 32)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from so101_sim.harness import PolicyInfo, StepPolicy
-from so101_sim.stats import (
+from so101_sim.harness.stats import (
     binom_cdf,
     critical_successes,
     episodes_needed,

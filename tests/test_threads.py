@@ -11,8 +11,8 @@ import time
 import pytest
 import torch
 
-from so101_sim.devices import cpu_cores
-from so101_sim.train_threads import AdaptiveThreads, BatchParts, CpuShare, split_batch
+from so101_sim.train.threads import AdaptiveThreads, BatchParts, CpuShare, split_batch
+from so101_sim.utils.devices import cpu_count
 
 
 def _drive(tuner: AdaptiveThreads, cost: dict[int, float], steps: int, start: int = 0) -> int:
@@ -126,7 +126,7 @@ _SPIN = "import time\nt = time.perf_counter()\nwhile time.perf_counter() - t < 1
         "print(time.process_time())"
 
 
-@pytest.mark.skipif(not CpuShare.available(cpu_cores()),
+@pytest.mark.skipif(not CpuShare.available(cpu_count()),
                     reason="/proc/stat does not count this process's cores (not Linux, or a "
                            "container on a bigger host): the tuner times probe steps instead")
 def test_cpu_share_counts_a_real_neighbour_and_not_this_process():
@@ -141,11 +141,11 @@ def test_cpu_share_counts_a_real_neighbour_and_not_this_process():
     neighbour_cores = float(neighbour.stdout.read()) / wall
     # other load on the machine may only add to what the neighbour used, and the total can
     # not exceed the cores left after this process's own share
-    assert neighbour_cores - 0.1 <= others <= cpu_cores() - own / wall + 0.1
+    assert neighbour_cores - 0.1 <= others <= cpu_count() - own / wall + 0.1
     assert neighbour_cores > 0.3  # it really ran beside this process
 
 
-@pytest.mark.skipif(cpu_cores() < 2 or not CpuShare.available(cpu_cores()),
+@pytest.mark.skipif(cpu_count() < 2 or not CpuShare.available(cpu_count()),
                     reason="needs /proc/stat for this process's cores and 2 or more of them")
 def test_tuner_gives_up_a_core_to_a_real_neighbour():
     before = torch.get_num_threads()
@@ -154,7 +154,7 @@ def test_tuner_gives_up_a_core_to_a_real_neighbour():
         tuner = AdaptiveThreads(window_s=1.0)
         time.sleep(1.1)  # the neighbour holds a core for the whole window
         tuner.after_step(1, 0.3)
-        assert (tuner.current, tuner.parts) == (1, min(cpu_cores(), 8))
+        assert (tuner.current, tuner.parts) == (1, min(cpu_count(), 8))
     finally:
         neighbour.wait()
         torch.set_num_threads(before)

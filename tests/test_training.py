@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 import torch
 
-from so101_sim import trainer
-from so101_sim.presets import PresetError, load_preset, make_config, policy_features
-from so101_sim.recording import DEFAULT_REPO_ID, record
-from so101_sim.trainer import TrainError, gather_batch, load_demos, train
+from so101_sim.dataset import DEFAULT_REPO_ID
+from so101_sim.record import record
+from so101_sim.train import trainer
+from so101_sim.train.presets import PresetError, load_preset, make_config, policy_features
+from so101_sim.train.trainer import TrainError, gather_batch, load_demos, train
 
 SMALL = (48, 64)
 FPS = 30
@@ -233,7 +234,7 @@ def test_checkpoint_loads_through_lerobot(dataset: Path, tiny: Path, tmp_path: P
     ema = _weights(r.pretrained_dir)
     assert any(not torch.equal(raw[k], ema[k]) for k in ema if k in raw)
     # the shipped form: fp16 on disk, fp32 after lerobot loads it, and a model card
-    from so101_sim.export import export_policy
+    from so101_sim.harness.export import export_policy
 
     shipped = export_policy(r.pretrained_dir, tmp_path / "shipped")
     assert all(v.dtype == torch.float16 for v in _weights(shipped).values()
@@ -285,8 +286,8 @@ def test_resume_refuses_a_preset_whose_architecture_changed(dataset: Path, tiny:
 
 def test_success_curve_goes_into_the_card(dataset: Path, tiny: Path, tmp_path: Path) -> None:
     """`so101-sim curve` evaluates each saved checkpoint on the same seeds; export draws it."""
-    from so101_sim.export import export_policy
     from so101_sim.harness.curve import evaluate_curve
+    from so101_sim.harness.export import export_policy
 
     run = tmp_path / "run"
     train(dataset, run, preset_name=str(tiny), steps=4, progress=False)

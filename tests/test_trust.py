@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from so101_sim.devices import resolve_device, resolve_precision
-from so101_sim.trust import UntrustedCheckpointError, check_processor_files
+from so101_sim.utils.devices import resolve_device, resolve_precision
+from so101_sim.utils.trust import UntrustedCheckpointError, check_processor_files
 
 SHIPPED = Path(__file__).parents[1] / "policy" / "pick_place_diffusion"
 
@@ -48,7 +48,7 @@ def test_processor_naming_a_class_is_refused_before_loading(tmp_path: Path) -> N
 
     with pytest.raises(UntrustedCheckpointError, match=r"os\.system"):
         load_policy(str(ck))
-    from so101_sim.export import export_policy
+    from so101_sim.harness.export import export_policy
 
     (ck / "so101_sim_train.json").write_text((SHIPPED / "so101_sim_train.json").read_text())
     with pytest.raises(UntrustedCheckpointError, match=r"os\.system"):
@@ -82,7 +82,7 @@ def test_shipped_checkpoint_passes_the_check() -> None:
 
 
 def test_crafted_training_state_is_not_unpickled(tmp_path: Path) -> None:
-    from so101_sim.train_state import TrainError, load_training_state
+    from so101_sim.train.state import TrainError, load_training_state
 
     marker = tmp_path / "pwned"
     path = tmp_path / "training_state.pt"
@@ -97,7 +97,7 @@ def test_crafted_training_state_is_not_unpickled(tmp_path: Path) -> None:
 
 
 def test_resume_without_a_checkpoint_is_refused(tmp_path: Path) -> None:
-    from so101_sim.trainer import TrainError, train
+    from so101_sim.train.trainer import TrainError, train
 
     with pytest.raises(TrainError, match="does not exist, so there is nothing to continue"):
         train(tmp_path / "ds", tmp_path / "typo", steps=1, resume=True, progress=False)
@@ -107,7 +107,7 @@ def test_resume_without_a_checkpoint_is_refused(tmp_path: Path) -> None:
 
 
 def test_torn_log_line_is_dropped(tmp_path: Path) -> None:
-    from so101_sim.train_state import truncate_log
+    from so101_sim.train.state import truncate_log
 
     log = tmp_path / "train_log.jsonl"
     log.write_text('{"step": 1, "loss": 1.0}\n{"step": 2, "loss": 0.9}\n{"step": 3, "lo')

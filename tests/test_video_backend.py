@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from so101_sim import video_backend
+from so101_sim.utils import video_backend
 
 CHECK = ("import so101_sim, subprocess, sys; "
          "from lerobot.utils.import_utils import get_safe_default_video_backend as pick; "

@@ -121,7 +121,7 @@ def test_without_ray_backend_ray_says_how_to_install(tmp_path) -> None:
 
 
 def test_import_so101_sim_loads_no_ray_or_torch() -> None:
-    code = ("import sys, so101_sim, so101_sim.workers, so101_sim.recording, so101_sim.harness; "
+    code = ("import sys, so101_sim, so101_sim.workers, so101_sim.record.api, so101_sim.harness; "
             "print(sorted(m for m in ('ray', 'torch') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, timeout=300).stdout

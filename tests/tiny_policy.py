@@ -70,7 +70,7 @@ def short_task(out_dir: str | Path, max_steps: int = 40) -> Path:
     """The default task with episodes cut to `max_steps` (fast closed-loop tests)."""
     import re
 
-    from so101_sim.paths import envs_dir
+    from so101_sim.utils.paths import envs_dir
 
     text = (envs_dir() / "pick_place.toml").read_text()
     text, n = re.subn(r"(?m)^max_steps\s*=\s*\d+", f"max_steps = {max_steps}", text)

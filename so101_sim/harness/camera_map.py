@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from so101_sim.env import CAMERAS
+from so101_sim.tasks import DEFAULT_CAMERAS as CAMERAS
 
 
 def parse_camera_map(text: str) -> dict[str, str]:

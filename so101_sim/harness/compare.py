@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from so101_sim.harness.results import INFO
-from so101_sim.stats import mcnemar_p_value, paired_difference_interval, wilson_interval
+from so101_sim.harness.stats import mcnemar_p_value, paired_difference_interval, wilson_interval
 
 JSON_NAME = "compare.json"
 MARKDOWN_NAME = "compare.md"

@@ -15,7 +15,8 @@ import re
 from pathlib import Path
 from typing import Any
 
-from so101_sim.stats import wilson_interval
+from so101_sim.harness.stats import wilson_interval
+from so101_sim.train.checkpoint import read_train_info
 
 CURVE_FILE = "eval_curve.jsonl"
 _STEP = re.compile(r"step_(\d+)$")
@@ -61,7 +62,7 @@ def evaluate_curve(run: str | Path, *, episodes: int = 32, every: int = 0, n_env
               if (steps is None or s in steps) and (every <= 0 or s % every == 0)
               and s not in done]
     for step, path in chosen:
-        info = json.loads((path / "so101_sim_train.json").read_text())
+        info = read_train_info(path) or {}
         out = run / "eval_curve" / f"step_{step:07d}"
         result = evaluate(str(path), episodes=episodes, n_envs=n_envs, seed_start=seed_start,
                           out_dir=out, videos=0, resume=out.exists(), progress=progress,

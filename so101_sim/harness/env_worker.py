@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from so101_sim.harness.rollout_tape import TapeSpec
-from so101_sim.task import TaskSpec
+from so101_sim.tasks import TaskSpec
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,7 @@ class EnvWorker:
     """One ``PickPlaceEnv`` driven by ``reset`` and ``act`` calls."""
 
     def __init__(self, cfg: EnvWorkerConfig) -> None:
-        from so101_sim.env import PickPlaceEnv
+        from so101_sim.sim import SO101Env as PickPlaceEnv
 
         self.cfg = cfg
         self.env = PickPlaceEnv(task=cfg.task, obs_type="state", image_size=cfg.render_size,

@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from so101_sim.stats import wilson_interval
+from so101_sim.harness.stats import wilson_interval
 
 EPISODES = "episodes.jsonl"
 CONFIG = "eval_config.json"

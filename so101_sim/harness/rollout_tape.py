@@ -4,7 +4,7 @@ An env worker with a tape renders every step (not only the frames the policy loo
 feeds both cameras to lerobot's ``StreamingVideoEncoder`` and keeps the low-dimensional
 columns. The finished episode comes back with the episode's last reply in the format of a
 ``record`` worker's result (columns + one mp4 per camera as bytes + video stats), so the
-driver spools and writes it with ``so101_sim.record_store`` / ``record_dataset`` and nothing
+driver spools and writes it with ``so101_sim.dataset.store`` / ``dataset.writer`` and nothing
 needs a shared filesystem (local processes and Ray actors alike).
 """
 
@@ -39,7 +39,7 @@ class RolloutTape:
         from lerobot.configs.video import RGBEncoderConfig
         from lerobot.datasets.video_utils import StreamingVideoEncoder
 
-        from so101_sim.recording import quiet_libav
+        from so101_sim.utils.video_backend import quiet_libav
 
         quiet_libav()
         self.spec = spec

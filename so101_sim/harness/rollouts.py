@@ -3,8 +3,8 @@
 The env workers tape each episode (``rollout_tape``: every step rendered at the eval's render
 size, both cameras encoded to mp4 in the worker). Here, in the driver, the pieces of
 ``record`` do the rest, so a rollout dataset is as durable as a recorded one: a finished
-episode is spooled (``record_store.Spool``) *before* its line goes into episodes.jsonl, then
-written through lerobot's ``save_episode`` in seed order (``record_dataset.Opened``), with a
+episode is spooled (``dataset.store.Spool``) *before* its line goes into episodes.jsonl, then
+written through lerobot's ``save_episode`` in seed order (``dataset.writer.Opened``), with a
 checkpoint every ``checkpoint_every`` episodes and at the end. Ctrl-C / SIGTERM end with a
 finalized dataset; after a SIGKILL, ``eval --resume`` recovers the last checkpoint, writes
 the spooled episodes and runs the rest, so every seed is in the dataset exactly once.
@@ -26,38 +26,14 @@ from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
+from so101_sim.dataset.schema import rollout_features
 from so101_sim.harness.rollout_tape import TapeSpec
-from so101_sim.task import TaskSpec
+from so101_sim.tasks import TaskSpec
 
 ROLLOUTS_KIND = "so101-sim eval --save-rollouts"
 DEFAULT_REPO_ID = "local/so101_eval_rollouts"
 CHECKPOINT_EVERY = 50
 
-
-def rollout_features(image_size: tuple[int, int], cameras: tuple[str, ...]
-                     ) -> dict[str, dict[str, Any]]:
-    """lerobot feature spec of a rollout dataset (see the module docstring)."""
-    from so101_sim.units import FEATURE_NAMES
-
-    h, w = image_size
-    names = list(FEATURE_NAMES)
-    one = {"shape": (1,), "names": None}
-    feats: dict[str, dict[str, Any]] = {
-        "observation.state": {"dtype": "float32", "shape": (6,), "names": names},
-        "action": {"dtype": "float32", "shape": (6,), "names": names},
-    }
-    for cam in cameras:
-        feats[f"observation.images.{cam}"] = {"dtype": "video", "shape": (h, w, 3),
-                                              "names": ["height", "width", "channels"]}
-    feats["episode_seed"] = {"dtype": "int64", **one}
-    feats["initial_cube_pose"] = {"dtype": "float32", "shape": (3,),
-                                  "names": ["x", "y", "yaw_deg"]}
-    feats["next.reward"] = {"dtype": "float32", **one}
-    feats["next.success"] = {"dtype": "bool", **one}
-    feats["next.done"] = {"dtype": "bool", **one}
-    feats["episode_success"] = {"dtype": "bool", **one}
-    feats["episode_failure_mode"] = {"dtype": "string", **one}
-    return feats
 
 
 def check_resume_target(out: Path, config_path: Path, save_rollouts: str | None) -> None:
@@ -83,7 +59,7 @@ def check_resume_target(out: Path, config_path: Path, save_rollouts: str | None)
 def _started_here(root: Path) -> bool:
     """A folder a run killed before its first checkpoint leaves (no episode in it: starting
     afresh loses nothing)."""
-    from so101_sim.record_store import COMMIT, SCRATCH, SIDECAR, SPOOL
+    from so101_sim.dataset.store import COMMIT, SCRATCH, SIDECAR, SPOOL
 
     ours = {"meta", "data", "videos", SIDECAR, COMMIT, SPOOL, SCRATCH}
     return (not (root / COMMIT).exists() and all(p.name in ours for p in root.iterdir())
@@ -117,7 +93,7 @@ class RolloutSink:
     def check(self, resume: bool) -> bool:
         """Refuse a folder that is not this run's (before anything is written); return
         whether it holds this run's dataset to resume."""
-        from so101_sim.record_store import read_sidecar
+        from so101_sim.dataset.store import read_sidecar
 
         root = self.root
         if root.exists() and not root.is_dir():
@@ -138,9 +114,10 @@ class RolloutSink:
 
     def open(self, resume: bool) -> None:
         """Create the dataset, or bring it back to its last checkpoint (``--resume``)."""
-        from so101_sim.record_dataset import Opened, encoder_config, info_features
-        from so101_sim.record_loop import Interrupts
-        from so101_sim.record_store import (
+        from so101_sim.dataset.interrupts import Interrupts
+        from so101_sim.dataset.reader import info_features, stored_seeds
+        from so101_sim.dataset.schema import DEFAULT_VCODEC, ROBOT_TYPE
+        from so101_sim.dataset.store import (
             RecoveryError,
             Spool,
             checkpoint,
@@ -149,7 +126,8 @@ class RolloutSink:
             scratch,
             write_sidecar,
         )
-        from so101_sim.recording import DEFAULT_VCODEC, ROBOT_TYPE, quiet_libav, stored_seeds
+        from so101_sim.dataset.writer import Opened, encoder_config
+        from so101_sim.utils.video_backend import quiet_libav
 
         quiet_libav()
         root, spec = self.root, self.spec
@@ -214,7 +192,7 @@ class RolloutSink:
         """Spool a worker's taped episode, then `commit` (its episodes.jsonl line), then write
         every episode that is next in seed order. Signals wait until the spool and the line
         are both on disk."""
-        from so101_sim.record_store import crash_point
+        from so101_sim.dataset.store import crash_point
 
         with self.interrupts.deferred():
             self.spool.put(result)
@@ -243,7 +221,7 @@ class RolloutSink:
     def close(self, finished: bool) -> None:
         """Finalize and checkpoint (unless a write was cut mid-episode: then recovery on
         ``--resume`` does it); drop the spool once every seed is in the dataset."""
-        from so101_sim.record_store import SCRATCH
+        from so101_sim.dataset.store import SCRATCH
 
         if self.interrupts is not None:
             self.interrupts.ignore()

@@ -26,12 +26,12 @@ from typing import Any
 
 import numpy as np
 
-from so101_sim.devices import eval_policy_threads, torch_threads
+from so101_sim.dataset import EVAL_SEED_START
 from so101_sim.harness.env_worker import EnvWorkerConfig
 from so101_sim.harness.policies import ChunkRequest, EvalPolicy, PolicyInfo, load_policy
 from so101_sim.harness.results import EpisodeRecord, RunDir, aggregate, per_episode
-from so101_sim.recording import EVAL_SEED_START
-from so101_sim.task import TaskSpec, load_task
+from so101_sim.tasks import TaskSpec, load_task, task_ref
+from so101_sim.utils.devices import eval_policy_threads, torch_threads
 from so101_sim.workers import PoolInfo, Reply, check_backend, start_pool
 
 VIDEO_ONLY_SIZE = (240, 320)  # render size for videos of policies that use no cameras
@@ -94,7 +94,8 @@ class _Slot:
     policy_s: float = 0.0
 
 
-def evaluate(policy: EvalPolicy | str, *, task: str = "pick_place", episodes: int = 50,
+def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_place",
+             episodes: int = 50,
              n_envs: int = 16, seed_start: int = EVAL_SEED_START, out_dir: str | Path | None = None,
              videos: int = 2, image_size: tuple[int, int] | None = None, resume: bool = False,
              allow_train_seeds: bool = False, worker_timeout_s: float = 600.0,
@@ -117,9 +118,9 @@ def evaluate(policy: EvalPolicy | str, *, task: str = "pick_place", episodes: in
     `threads`: torch CPU threads for the policy's forwards while it runs (restored after);
     None: ``devices.eval_policy_threads()``, half the cores (one on 2 cores).
     """
-    spec = load_task(task)
+    spec = load_task(task)  # parsed once here; the spec travels to the workers
     if not isinstance(policy, EvalPolicy):
-        policy = load_policy(policy, task=task)
+        policy = load_policy(policy, task=spec)
     _check_args(episodes, n_envs, seed_start, videos, allow_train_seeds)
     check_backend(backend, ray_address)
     info = policy.info
@@ -153,8 +154,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str = "pick_place", episodes: in
 
         sink = rollout_sink(
             save_rollouts, resume=resume, spec=spec, image_size=tuple(rendering.render_size),
-            task_arg=str(Path(task).resolve()) if Path(str(task)).suffix == ".toml"
-            else spec.name, seeds=list(range(seed_start, seed_start + episodes)),
+            task_arg=task_ref(spec), seeds=list(range(seed_start, seed_start + episodes)),
             eval_out=run.path, identity=identity, checkpoint_every=checkpoint_every)
     done = {s: r for s, r in run.prepare(identity, resume).items()
             if seed_start <= s < seed_start + episodes}
@@ -264,12 +264,12 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                dynamic_ncols=True)
     n_run = 0
     if info.cameras or videos or sink is not None:
-        from so101_sim.rendering import select_gl_backend
+        from so101_sim.sim.rendering import select_gl_backend
 
         select_gl_backend()  # choose (and print) once here: workers inherit MUJOCO_GL
     pool = start_pool(cfg, min(n_envs, len(todo)), backend=backend, ray_address=ray_address,
-                      name="so101-eval-worker", preload=("so101_sim.env",) if sink is None
-                      else ("so101_sim.env", "so101_sim.harness.rollout_tape",
+                      name="so101-eval-worker", preload=("so101_sim.sim.env",) if sink is None
+                      else ("so101_sim.sim.env", "so101_sim.harness.rollout_tape",
                             "lerobot.datasets.video_utils"),
                       timeout_s=worker_timeout_s, log=log)
     slots = [_Slot() for _ in range(pool.size)]
@@ -384,7 +384,7 @@ def _to_policy_obs(obs: dict[str, Any], rendering: Rendering) -> dict[str, Any]:
     """Resize a worker's frames to the policy's input size with the training resize."""
     if "pixels" not in obs or not rendering.resize:
         return obs
-    from so101_sim.image_pipeline import resize_frames
+    from so101_sim.utils.image_pipeline import resize_frames
 
     cams = list(obs["pixels"])
     small = resize_frames(np.stack([obs["pixels"][c] for c in cams]), rendering.input_size)

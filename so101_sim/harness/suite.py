@@ -17,8 +17,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from so101_sim.stats import wilson_interval
-from so101_sim.task import available_tasks, load_task
+from so101_sim.harness.stats import wilson_interval
+from so101_sim.tasks import available_tasks, load_task
 
 SUITE_INFO = "eval_info.json"
 
@@ -57,12 +57,13 @@ def evaluate_suite(policy: str, tasks: Sequence[str], *,
     t0 = time.perf_counter()
     results: dict[str, dict[str, Any]] = {}
     for task in tasks:
-        name = load_task(task).name
-        loaded = load_policy(policy, task=task, **(load_options or {}))
+        spec = load_task(task)
+        name = spec.name
+        loaded = load_policy(policy, task=spec, **(load_options or {}))
         kwargs = dict(evaluate_kwargs)
         if kwargs.get("save_rollouts") is not None:  # one dataset per task: <DIR>/<task>
             kwargs["save_rollouts"] = Path(kwargs["save_rollouts"]) / name
-        results[name] = evaluate(loaded, task=task, out_dir=out / name, log=log, **kwargs)
+        results[name] = evaluate(loaded, task=spec, out_dir=out / name, log=log, **kwargs)
     info = suite_info(results, time.perf_counter() - t0, out, str(policy))
     out.mkdir(parents=True, exist_ok=True)
     (out / SUITE_INFO).write_text(json.dumps(info, indent=2) + "\n")

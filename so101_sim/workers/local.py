@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing as mp
-import os
 import signal
 import socket
 import time
@@ -23,7 +22,7 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection, wait
 from typing import Any
 
-from so101_sim.workers import PoolInfo, Reply, WorkerPool
+from so101_sim.workers.base import PoolInfo, Reply, WorkerPool
 
 
 def _worker_main(conn: Connection, factory: Callable[[], Any]) -> None:
@@ -96,16 +95,16 @@ class LocalPool(WorkerPool):
     def _await_ready(self, i: int) -> None:
         conn, proc = self._conns[i], self._procs[i]
         ready = wait([conn, proc.sentinel], timeout=self.start_timeout_s)
-        kind, payload = "fatal", f"not ready after {self.start_timeout_s:.0f} s"
+        status, payload = "fatal", f"not ready after {self.start_timeout_s:.0f} s"
         if conn in ready:
             try:
-                kind, payload = conn.recv()
+                status, payload = conn.recv()
             except EOFError:
                 payload = f"exited with code {proc.exitcode} while starting"
         elif ready:
             proc.join(timeout=5)
             payload = f"exited with code {proc.exitcode} while starting"
-        if kind != "ready":
+        if status != "ready":
             raise RuntimeError(f"worker {self.name}-{i} could not start its "
                                f"{type(self.factory).__name__}: {payload}")
 
@@ -161,11 +160,11 @@ class LocalPool(WorkerPool):
             try:
                 if out and not conn.poll():
                     break
-                kind, payload = conn.recv()
+                status, payload = conn.recv()
             except (EOFError, OSError):
                 return out + self._died(i, "its pipe closed")
             method, args = self._calls[i].popleft()
-            if kind == "ok":
+            if status == "ok":
                 out.append(Reply(i, method, args, value=payload))
             else:
                 out.append(Reply(i, method, args, error=str(payload)))
@@ -208,10 +207,3 @@ class LocalPool(WorkerPool):
             self._calls[i].clear()
         self._since.clear()
 
-
-def cpu_count() -> int:
-    """CPUs this process may run on (its affinity mask), not all the machine has."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1

@@ -20,8 +20,8 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from so101_sim.workers import RAY_INSTALL_HINT, PoolInfo, Reply, WorkerPool
-from so101_sim.workers.local import cpu_count
+from so101_sim.utils.devices import cpu_count
+from so101_sim.workers.base import RAY_INSTALL_HINT, PoolInfo, Reply, WorkerPool
 
 #: Environment the actors need, copied from the driver: GL backend, offline hub, threads.
 FORWARDED_ENV = ("MUJOCO_GL", "PYOPENGL_PLATFORM", "HF_HUB_OFFLINE", "OMP_WAIT_POLICY")
@@ -168,12 +168,12 @@ class RayPool(WorkerPool):
             for ref in ready:
                 i = heads[ref]
                 try:
-                    kind, payload = ray.get(ref)
+                    status, payload = ray.get(ref)
                 except ray.exceptions.RayError as exc:
                     out += self._died(i, f"{type(exc).__name__}: {str(exc).splitlines()[0]}")
                     continue
                 _, method, args = self._calls[i].popleft()
-                if kind == "ok":
+                if status == "ok":
                     out.append(Reply(i, method, args, value=payload))
                 else:
                     out.append(Reply(i, method, args, error=str(payload)))

@@ -1,0 +1,161 @@
+"""What each `so101-sim` subcommand does: parse-free handlers that call the pipeline.
+
+Imports happen inside each handler, so `so101-sim --help` and a mistyped flag stay fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from so101_sim.record.demo import contact_sheet, parse_grid, run_demo
+
+    if args.grid:  # one PNG of many seeds' first frames
+        sheet = contact_sheet(Path(args.out), args.task, parse_grid(args.grid), args.seed,
+                              args.image_size or (240, 320))
+        print(f"contact sheet: {sheet}")
+        return 0
+    paths = run_demo(Path(args.out), steps=args.steps, image_size=args.image_size or (480, 640),
+                     seed=args.seed, task=args.task)
+    for name, path in paths.items():
+        print(f"{name}: {path}")
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from so101_sim.record import record
+
+    try:
+        s = record(Path(args.out), args.episodes, task=args.task, seed_start=args.seed_start,
+                   image_size=args.image_size, keep_failures=args.keep_failures,
+                   resume=args.resume, workers=args.workers, dart_noise=args.dart_noise,
+                   vcodec=args.vcodec, recover=args.recover,
+                   grasp_clearance=args.grasp_clearance, backend=args.backend,
+                   ray_address=args.ray_address, checkpoint_every=args.checkpoint_every)
+    except KeyboardInterrupt:
+        print(f"so101-sim record: interrupted; {args.out} holds every completed episode "
+              "(continue with --resume)", file=sys.stderr)
+        return 130
+    reused = f"; {s['reused']} recovered from before a kill" if s.get("reused") else ""
+    print(f"{args.out}: {s['episodes']} episodes ({s['new_episodes']} new{reused}; "
+          f"{s['successes']}/{s['tried']} seeds succeeded), "
+          f"{s['env_steps']} env-steps in {s['seconds']:.1f} s = {s['steps_per_s']:.1f} steps/s")
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from so101_sim.record import replay
+
+    dev = replay(Path(args.dataset), args.episode)
+    print(f"episode {args.episode}: max |observation.state - re-simulated agent_pos| = {dev:.3g}")
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from so101_sim.train import TrainError, train
+    from so101_sim.train.presets import PresetError
+
+    try:
+        r = train(Path(args.dataset), Path(args.out), preset_name=args.preset, steps=args.steps,
+                  batch_size=args.batch_size, resume=args.resume, precision=args.precision,
+                  device=args.device, threads=args.threads, stop_at=args.stop_at)
+    except (TrainError, PresetError) as e:
+        print(f"so101-sim train: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as e:
+        print(f"so101-sim train: {e}; continue with --resume", file=sys.stderr)
+        return 130
+    print(f"{r.out}: step {r.step}, last loss {r.final_loss:.4f}, {r.samples_per_s:.1f} "
+          f"samples/s, {r.wall_s / 60:.1f} min in all; EMA policy in {r.pretrained_dir}")
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from so101_sim.harness import evaluate, load_policy
+
+    options = {k: v for k, v in (("n_action_steps", args.n_action_steps),
+                                 ("num_inference_steps", args.inference_steps),
+                                 ("noise_scheduler", args.noise_scheduler),
+                                 ("batch_size", args.policy_batch),
+                                 ("camera_map", args.camera_map)) if v is not None}
+    try:
+        if args.device != "cpu" and args.policy != "expert" and ":" not in args.policy:
+            from so101_sim.utils.devices import resolve_device
+
+            options["device"] = resolve_device(args.device)
+        if "," in args.task or args.task == "all":  # one table over several tasks
+            from so101_sim.harness.suite import evaluate_suite_from_args
+
+            evaluate_suite_from_args(args, options)
+            return 0
+        policy = load_policy(args.policy, task=args.task, **options)
+        evaluate(policy, task=args.task, episodes=args.episodes, n_envs=args.n_envs,
+                 seed_start=args.seed_start, out_dir=args.out, videos=args.videos,
+                 image_size=args.image_size, resume=args.resume,
+                 allow_train_seeds=args.allow_train_seeds, backend=args.backend,
+                 ray_address=args.ray_address, save_rollouts=args.save_rollouts,
+                 threads=args.threads)
+    except KeyboardInterrupt:
+        saved = " and --save-rollouts" if args.save_rollouts else ""
+        print(f"so101-sim eval: interrupted; every finished episode is in episodes.jsonl{saved} "
+              "(finish with the same arguments plus --resume)", file=sys.stderr)
+        return 130
+    return 0
+
+
+def cmd_curve(args: argparse.Namespace) -> int:
+    from so101_sim.harness.curve import evaluate_curve, plot_curve
+
+    run = Path(args.run)
+    rows = evaluate_curve(run, episodes=args.episodes, every=args.every, n_envs=args.n_envs,
+                          seed_start=args.seed_start)
+    for r in rows:
+        print(f"step {r['step']:>7} ({r['train_hours']:.2f} h): {r['successes']}/"
+              f"{r['episodes']} = {100 * r['success']:.1f}% (95% CI {100 * r['ci95'][0]:.1f}-"
+              f"{100 * r['ci95'][1]:.1f})")
+    print(f"plot: {plot_curve(rows, run / 'eval_curve.png')}")
+    return 0
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from so101_sim.harness.compare import compare_runs, summary_lines, write_comparison
+
+    r = compare_runs(args.run_a, args.run_b)
+    out = args.out or (Path("outputs/compare") / f"{Path(args.run_a).name}-vs-"
+                                                  f"{Path(args.run_b).name}")
+    for line in summary_lines(r):
+        print(line)
+    json_path, md_path = write_comparison(r, out)
+    print(f"-> {json_path}, {md_path}")
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from so101_sim.harness.export import export_policy
+
+    try:
+        dest = export_policy(Path(args.checkpoint), Path(args.out),
+                             Path(args.eval) if args.eval else None, args.hardware,
+                             [Path(d) for d in args.also_eval])
+    except FileNotFoundError as e:
+        print(f"so101-sim export: {e}", file=sys.stderr)
+        return 2
+    size = sum(f.stat().st_size for f in dest.iterdir()) / 1e6
+    print(f"{dest}: {size:.1f} MB (model card {dest / 'README.md'})")
+    return 0
+
+
+def cmd_explain(args: argparse.Namespace) -> int:
+    from so101_sim.explain import explain
+
+    ex = explain(Path(args.dataset), args.policy, episode=args.episode, frame=args.frame,
+                 k=args.k, out=args.out, preset=args.preset, seed=args.seed)
+    n = ex.numbers
+    rmse = n["sampling"]["rmse_executed"]
+    print(f"loss {n['loss']['mse']:.4f} at k={n['noise']['k']}; sampled chunk vs recorded "
+          f"actions: max RMSE {max(rmse) if rmse else float('nan'):.2f} over the executed rows")
+    print(f"page: {ex.html_path}  numbers: {ex.json_path}")
+    return 0

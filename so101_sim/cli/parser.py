@@ -1,0 +1,239 @@
+"""The `so101-sim` argument parser: one subcommand per pipeline step, flags checked here."""
+
+from __future__ import annotations
+
+import argparse
+
+from so101_sim.cli import commands
+
+
+def parse_image_size(text: str) -> tuple[int, int]:
+    """"480x640" -> (480, 640) (height x width)."""
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"image size {text!r} is invalid; expected HEIGHTxWIDTH, e.g. 480x640") from None
+    if not (16 <= h <= 2048 and 16 <= w <= 2048):
+        raise argparse.ArgumentTypeError(f"image size {text!r} out of range; each side 16..2048")
+    return h, w
+
+
+def parse_camera_map_arg(text: str) -> dict[str, str]:
+    """argparse type for --camera-map (see so101_sim.harness.camera_map)."""
+    from so101_sim.harness.camera_map import parse_camera_map
+
+    try:
+        return parse_camera_map(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+
+def add_backend_args(p: argparse.ArgumentParser, count_flag: str) -> None:
+    """--backend / --ray-address, shared by eval and record."""
+    p.add_argument("--backend", choices=("local", "ray"), default="local",
+                   help=f"where the {count_flag} envs run: local processes (default) or Ray "
+                        "actors (pip install 'so101-sim[ray]'); results are the same")
+    p.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="with --backend ray: 'auto' or HOST:PORT joins a running cluster "
+                        "(`ray start --head` first); omitted, a local Ray runtime is started")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="so101-sim", description="`so101-sim` command line.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    demo = sub.add_parser("demo", help="roll the env with a fixed action sequence; write an mp4 "
+                                       "of front|side and one PNG per camera")
+    demo.add_argument("--out", default="outputs/demo", help="output folder")
+    demo.add_argument("--steps", type=int, default=240)
+    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--task", default="pick_place", help="task name in envs/ or a .toml path")
+    demo.add_argument("--image-size", type=parse_image_size, default=None,
+                      help="HEIGHTxWIDTH of each camera (default 480x640; 240x320 with --grid)")
+    demo.add_argument("--grid", default=None, metavar="ROWSxCOLS",
+                      help="instead of a rollout, write one PNG of the first front frame of "
+                           "ROWS*COLS seeds from --seed (e.g. --task pick_place_dr --grid 4x4)")
+    demo.set_defaults(func=commands.cmd_demo)
+
+    rec = sub.add_parser("record", help="record scripted-expert demonstrations as a "
+                                        "LeRobotDataset v3 (training seeds only)")
+    rec.add_argument("--task", default="pick_place", help="task name in envs/ or a .toml path")
+    rec.add_argument("--episodes", type=int, required=True, help="episodes wanted in the dataset")
+    rec.add_argument("--out", required=True, help="dataset folder (the LeRobotDataset root)")
+    rec.add_argument("--seed-start", type=int, default=0, help="first reset seed (0..99999)")
+    rec.add_argument("--image-size", type=parse_image_size, default=(480, 640),
+                     help="HEIGHTxWIDTH of each camera (default 480x640)")
+    rec.add_argument("--keep-failures", action="store_true",
+                     help="also keep episodes the expert failed")
+    rec.add_argument("--resume", action="store_true",
+                     help="continue an existing dataset up to --episodes without repeating a seed")
+    rec.add_argument("--workers", type=int, default=1,
+                     help="workers that simulate, render and encode in parallel (processes, "
+                          "or Ray actors with --backend ray; one per CPU core is best); "
+                          "episodes are still stored in seed order")
+    rec.add_argument("--dart-noise", type=float, default=0.0, metavar="STD",
+                     help="DART noise: execute the expert's action plus Gaussian noise of this "
+                          "std (degrees; gripper 0..100 units) while `action` keeps the clean "
+                          "label; executed actions go to `action_executed` (default 0: off)")
+    rec.add_argument("--recover", action="store_true",
+                     help="the expert watches the cube and retries a missed grasp, a dropped "
+                          "cube or a cube left off the target (recoveries in the demos; use "
+                          "with --dart-noise so some first attempts fail)")
+    rec.add_argument("--grasp-clearance", type=float, default=None, metavar="M",
+                     help="gap (m) between the fixed finger pad and the cube when the expert "
+                          "grasps (default 0.004; 0.012 centres the cube in the open gripper "
+                          "and tolerates ~2x the position error)")
+    rec.add_argument("--vcodec", choices=["h264", "libsvtav1"], default=None,
+                     help="video codec of a new dataset (default h264: about half the CPU of "
+                          "AV1 per frame; a resumed dataset keeps its own)")
+    rec.add_argument("--checkpoint-every", type=int, default=50, metavar="N",
+                     help="finalize the dataset every N episodes (default 50). A kill loses "
+                          "no finished episode either way (--resume recovers them); this "
+                          "bounds the recovery work and the spooled episodes on disk")
+    add_backend_args(rec, "--workers")
+    rec.set_defaults(func=commands.cmd_record)
+
+    rep = sub.add_parser("replay", help="re-simulate a recorded episode from its seed and "
+                                        "actions; print the largest state deviation")
+    rep.add_argument("dataset", help="dataset folder written by `so101-sim record`")
+    rep.add_argument("--episode", type=int, default=0)
+    rep.set_defaults(func=commands.cmd_replay)
+
+    tr = sub.add_parser("train", help="train a Diffusion Policy preset on a recorded dataset "
+                                      "(EMA weights, lerobot checkpoint format)")
+    tr.add_argument("--preset", default="cpu", help="preset name in policy/presets (cpu, seed) "
+                                                    "or a .toml path")
+    tr.add_argument("--dataset", required=True, help="LeRobotDataset folder (so101-sim record)")
+    tr.add_argument("--out", required=True, help="run folder (checkpoints, log, final policy)")
+    tr.add_argument("--steps", type=int, default=None, help="total steps (default: preset)")
+    tr.add_argument("--batch-size", type=int, default=None, help="default: preset")
+    tr.add_argument("--stop-at", type=int, default=None, metavar="STEP",
+                    help="pause at this step with a checkpoint; the schedule stays sized for "
+                         "--steps, so --resume later continues the same run (for comparing runs "
+                         "at equal steps)")
+    tr.add_argument("--resume", action="store_true",
+                    help="continue from the last checkpoint in --out, exactly")
+    tr.add_argument("--threads", type=int, default=None,
+                    help="torch CPU threads, fixed and bitwise repeatable (default on CPU: "
+                         "all cores when idle; with another job busy, the batch in one part "
+                         "per core, one thread each)")
+    tr.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+                    help="bf16: autocast matmuls/convs to bfloat16 (1.45x faster per step on "
+                         "AMX/AVX512-BF16 CPUs; weights, optimiser and EMA stay fp32); auto "
+                         "(default): bf16 where the device has fast bf16, else fp32")
+    tr.add_argument("--device", choices=("auto", "cpu", "cuda", "mps"), default="auto",
+                    help="auto (default): cuda, then mps, then cpu")
+    tr.set_defaults(func=commands.cmd_train)
+
+    cu = sub.add_parser("curve", help="evaluate a training run's saved checkpoints on the same "
+                                      "evaluation seeds: success against step and hours")
+    cu.add_argument("run", help="the --out folder of `so101-sim train`")
+    cu.add_argument("--episodes", type=int, default=32, help="seeds per checkpoint")
+    cu.add_argument("--every", type=int, default=0,
+                    help="only checkpoints whose step is a multiple of this (default: all)")
+    cu.add_argument("--n-envs", type=int, default=8)
+    cu.add_argument("--seed-start", type=int, default=100_000)
+    cu.set_defaults(func=commands.cmd_curve)
+
+    ex = sub.add_parser("export", help="copy a trained checkpoint to a shippable folder: fp16 "
+                                       "weights and a model card with harness numbers")
+    ex.add_argument("checkpoint", help="a checkpoints/step_*/pretrained_model folder")
+    ex.add_argument("--out", default="policy/pick_place_diffusion")
+    ex.add_argument("--eval", default=None, help="a `so101-sim eval --out` folder whose "
+                                                 "eval_info.json goes into the card")
+    ex.add_argument("--also-eval", action="append", default=[], metavar="DIR",
+                    help="more eval folders of the same checkpoint (e.g. the direct-render "
+                         "path) shown in the card beside --eval; repeatable")
+    ex.add_argument("--hardware", default="2-core CPU (no GPU)")
+    ex.set_defaults(func=commands.cmd_export)
+
+    ev = sub.add_parser("eval", help="evaluate a policy closed-loop on evaluation seeds: "
+                                     "success rate with interval, failure modes, videos, report")
+    ev.add_argument("--policy", required=True,
+                    help="'expert', a lerobot checkpoint directory (config.json, "
+                         "model.safetensors, saved processors; read as data: processor steps "
+                         "must be ones lerobot registers) or 'package.module:factory', which "
+                         "IMPORTS AND RUNS that Python code: use it only for your own code")
+    ev.add_argument("--task", default="pick_place",
+                    help="task name in envs/ or a .toml path; several as a,b,c or 'all' "
+                         "(one folder per task under --out, one table, eval_info.json "
+                         "grouped per task)")
+    ev.add_argument("--episodes", type=int, default=50)
+    ev.add_argument("--n-envs", type=int, default=16,
+                    help="env workers (default 16: two policy forwards of 8, so one half steps "
+                         "while the policy runs the other's): processes, or Ray actors with "
+                         "--backend ray; results per seed depend on neither")
+    ev.add_argument("--seed-start", type=int, default=100_000,
+                    help="first seed (default 100000; training seeds are below it)")
+    ev.add_argument("--allow-train-seeds", action="store_true",
+                    help="allow --seed-start below 100000 (measuring on training seeds)")
+    ev.add_argument("--out", default=None,
+                    help="output folder (default outputs/eval/<policy>-<task>-<time>)")
+    ev.add_argument("--videos", type=int, default=2, help="mp4s of the first V episodes")
+    ev.add_argument("--image-size", type=parse_image_size, default=None,
+                    help="render size HEIGHTxWIDTH (default: the checkpoint's training data size "
+                         "from so101_sim_train.json, then resized like training; the policy's "
+                         "input size renders directly, faster)")
+    ev.add_argument("--resume", action="store_true",
+                    help="finish an interrupted evaluation in --out")
+    ev.add_argument("--n-action-steps", type=int, default=None,
+                    help="actions executed per chunk (default: the checkpoint's)")
+    ev.add_argument("--inference-steps", type=int, default=None,
+                    help="diffusion denoising steps (default: the checkpoint's)")
+    ev.add_argument("--noise-scheduler", choices=["DDIM", "DDPM"], default=None,
+                    help="diffusion sampler (default: the checkpoint's)")
+    ev.add_argument("--threads", type=int, default=None,
+                    help="torch CPU threads for the policy's forwards (default: half the cores, "
+                         "at least 1: the env workers render on the rest, and a busy "
+                         "neighbour cannot stall a thread pool)")
+    ev.add_argument("--device", choices=("auto", "cpu", "cuda", "mps"), default="auto",
+                    help="where policy forwards run (default auto: cuda, then mps, then cpu); "
+                         "envs always run on CPU workers")
+    ev.add_argument("--policy-batch", type=int, default=None,
+                    help="rows per policy forward, padded (default 8; 1 = one env per forward)")
+    ev.add_argument("--camera-map", type=parse_camera_map_arg, default=None,
+                    metavar="POLICY_CAM=ENV_CAM,...",
+                    help="feed env cameras (front, side) to policy camera inputs named after "
+                         "another rig, e.g. top=front,wrist=side; the summary and report "
+                         "state the mapping")
+    ev.add_argument("--save-rollouts", default=None, metavar="DIR",
+                    help="also write every evaluated episode to DIR as a LeRobotDataset (both "
+                         "cameras as video at the render size, executed actions, seed, "
+                         "success, failure mode); renders every step, so slower")
+    add_backend_args(ev, "--n-envs")
+    ev.set_defaults(func=commands.cmd_eval)
+
+    cmp = sub.add_parser("compare", help="compare two eval folders seed by seed: both rates, "
+                                         "the paired table, exact McNemar p, the difference "
+                                         "with its interval")
+    cmp.add_argument("run_a", help="an `so101-sim eval --out` folder (A)")
+    cmp.add_argument("run_b", help="another one over the same seeds and task (B)")
+    cmp.add_argument("--out", default=None, help="folder for compare.json and compare.md "
+                                                 "(default outputs/compare/<A>-vs-<B>)")
+    cmp.set_defaults(func=commands.cmd_compare)
+
+    xp = sub.add_parser("explain", help="trace one training example through a Diffusion "
+                                        "Policy, step by step with real numbers: one "
+                                        "self-contained HTML page + JSON")
+    xp.add_argument("--dataset", required=True, help="LeRobotDataset folder (so101-sim record)")
+    xp.add_argument("--policy", default=None,
+                    help="lerobot diffusion checkpoint folder (read as data: processor steps "
+                         "must be ones lerobot registers); default: a fresh, untrained "
+                         "--preset policy with this dataset's normalisation stats")
+    xp.add_argument("--preset", default="seed",
+                    help="preset of the fresh policy when no --policy (default seed)")
+    xp.add_argument("--episode", type=int, default=0)
+    xp.add_argument("--frame", type=int, default=5,
+                    help="current frame t within the episode (default 5: frames 4 and 5 are "
+                         "observed, as in the walkthrough)")
+    xp.add_argument("--k", type=int, default=25,
+                    help="diffusion step at which noise is added for the loss (default 25)")
+    xp.add_argument("--seed", type=int, default=0,
+                    help="seed of the noise (loss and sampling) and of a fresh policy")
+    xp.add_argument("--out", default=None, help="output folder for explain.html and "
+                                                "explain.json (default "
+                                                "outputs/explain/<policy>-ep<E>-f<F>)")
+    xp.set_defaults(func=commands.cmd_explain)
+    return parser

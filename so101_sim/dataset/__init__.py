@@ -1,0 +1,28 @@
+"""Datasets: the LeRobotDataset schema every writer follows, the kill-safe writer (spool,
+checkpoints, recovery) and the readers. ``record`` and ``eval --save-rollouts`` write through
+here; ``train`` and ``explain`` read through ``open_lerobot_dataset``."""
+
+from so101_sim.dataset.reader import (
+    NotADatasetError,
+    info_features,
+    open_lerobot_dataset,
+    read_frames,
+    stored_seeds,
+)
+from so101_sim.dataset.schema import (
+    CAMERAS,
+    DEFAULT_REPO_ID,
+    DEFAULT_VCODEC,
+    EVAL_SEED_START,
+    ROBOT_TYPE,
+    VCODECS,
+    VIDEO_KEYS,
+    check_seed_range,
+    dataset_features,
+)
+from so101_sim.dataset.store import SIDECAR, read_sidecar
+
+__all__ = ["CAMERAS", "DEFAULT_REPO_ID", "DEFAULT_VCODEC", "EVAL_SEED_START", "ROBOT_TYPE",
+           "SIDECAR", "VCODECS", "VIDEO_KEYS", "NotADatasetError", "check_seed_range",
+           "dataset_features", "info_features", "open_lerobot_dataset", "read_frames",
+           "read_sidecar", "stored_seeds"]

@@ -1,0 +1,54 @@
+"""Ctrl-C and SIGTERM while a dataset is being written: end with a finalized dataset.
+
+Every writer of a dataset (``record``, ``eval --save-rollouts``) installs ``Interrupts``: the
+signal becomes a KeyboardInterrupt, deferred while an episode is being saved.
+"""
+
+from __future__ import annotations
+
+import signal
+from collections.abc import Iterator
+from contextlib import contextmanager, suppress
+from typing import Any
+
+
+class Interrupts:
+    """Turns SIGINT/SIGTERM into KeyboardInterrupt, deferred while an episode is being saved,
+    so that Ctrl-C ends a run with a finalized dataset and a checkpoint."""
+
+    def __init__(self) -> None:
+        self.critical = False
+        self.pending: int | None = None
+        self._old: dict[int, Any] = {}
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        if self.critical:
+            self.pending = signum
+        else:
+            raise KeyboardInterrupt(f"signal {signum}")
+
+    def install(self) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with suppress(ValueError):  # not the main thread: leave signals alone
+                self._old[sig] = signal.signal(sig, self._handler)
+
+    def ignore(self) -> None:
+        """While closing: a second Ctrl-C must not interrupt the checkpoint."""
+        for sig in self._old:
+            signal.signal(sig, signal.SIG_IGN)
+
+    def restore(self) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+        self._old.clear()
+
+    @contextmanager
+    def deferred(self) -> Iterator[None]:
+        self.critical = True
+        try:
+            yield
+        finally:
+            self.critical = False
+        if self.pending is not None:
+            signum, self.pending = self.pending, None
+            raise KeyboardInterrupt(f"signal {signum}")

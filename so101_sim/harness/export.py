@@ -1,0 +1,158 @@
+"""Ship a trained policy: fp16 weights (lerobot restores fp32 on load) plus a model card.
+
+The card's numbers come from files, not from the person writing it: the training facts from the
+checkpoint's `so101_sim_train.json`, the training curve from the run's `train_log.jsonl`, and the
+success rate from a harness run's `eval_info.json`.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+from so101_sim.harness.curve import plot_curve, read_curve
+from so101_sim.train.checkpoint import TRAIN_INFO
+from so101_sim.utils.trust import check_processor_files
+
+
+def _fp16_copy(src: Path, dst: Path) -> None:
+    from safetensors.torch import load_file, save_file
+
+    state = load_file(src)
+    save_file({k: v.half() if v.is_floating_point() else v for k, v in state.items()}, dst,
+              metadata={"format": "pt", "so101_sim": "stored fp16; loads into fp32"})
+
+
+def loss_curve(log: Path, points: int = 8) -> list[dict]:
+    rows = []
+    for n, line in enumerate(log.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            if line.strip():
+                print(f"so101-sim export: {log}: skipped unreadable line {n}")
+    if not rows:
+        return []
+    pick = sorted({round(i * (len(rows) - 1) / (points - 1)) for i in range(points)})
+    return [rows[i] for i in pick]
+
+
+def _precision(train_info: dict) -> str:
+    """'fp32', or which steps ran in which precision when a resume changed it."""
+    hist = train_info.get("precision_history") or [[0, train_info.get("precision", "fp32")]]
+    names = {"fp32": "fp32", "bf16": "bf16 autocast"}
+    if len(hist) == 1:
+        return names.get(hist[0][1], hist[0][1])
+    ends = [h[0] for h in hist[1:]] + [train_info["step"]]
+    return "; ".join(f"{names.get(p, p)} steps {a}-{b}" for (a, p), b in zip(hist, ends,
+                                                                             strict=True))
+
+
+def _eval_rows(eval_info: dict, label: str) -> list[str]:
+    agg, cfg = eval_info["aggregated"], eval_info["config"]
+    lo, hi = agg["success_ci95"]
+    modes = ", ".join(f"{k} {v}" for k, v in sorted(agg.get("failure_modes", {}).items()))
+    return [f"| {label} | **{agg['pc_success']:.1f}%** (95% Wilson [{lo:.1f}, {hi:.1f}]) on "
+            f"{agg['n_episodes']} evaluation seeds from {cfg['seed_start']}; outcomes: "
+            f"{modes or 'n/a'}; images: {cfg.get('images', 'n/a')} |"]
+
+
+def _recording_note(dataset: str) -> str:
+    """How the demos were recorded (DART noise, expert options), from the dataset sidecar."""
+    side = Path(dataset).expanduser() / "so101_sim_recording.json"
+    if not side.is_file():
+        return ""
+    s = json.loads(side.read_text())
+    parts = [f"DART noise {s['dart_noise']:g}" if s.get("dart_noise") else "no DART noise"]
+    expert = s.get("expert") or {}
+    if expert.get("recover"):
+        parts.append("recovering expert (retries)")
+    if "clearance" in expert:
+        parts.append(f"grasp clearance {expert['clearance']:g} m")
+    return "; " + ", ".join(parts)
+
+
+def _success_rows(rows: list[dict]) -> list[str]:
+    lines = ["", "Closed-loop success along training (`so101-sim curve`, each checkpoint on "
+             f"the same {rows[-1]['episodes']} evaluation seeds from {rows[-1]['seed_start']}):",
+             "", "![success against training](curve.png)", "",
+             "| step | trainer wall hours | success | 95% Wilson |", "|---|---|---|---|"]
+    lines += [f"| {r['step']} | {r['train_hours']:.2f} | {r['successes']}/{r['episodes']} | "
+              f"{100 * r['ci95'][0]:.1f}-{100 * r['ci95'][1]:.1f}% |" for r in rows]
+    return lines
+
+
+def model_card(train_info: dict, eval_info: dict | None, curve: list[dict],
+               hardware: str, also: list[dict] | None = None,
+               success_curve: list[dict] | None = None) -> str:
+    """Markdown model card from the training sidecar, the loss curve and a harness result."""
+    t = train_info
+    lines = [
+        "# pick_place_diffusion: Diffusion Policy for so101_sim/PickPlace-v0", "",
+        "lerobot `DiffusionPolicy` (EMA weights, stored fp16, loaded as fp32), trained with "
+        "`so101-sim train` on scripted-expert demonstrations.", "",
+        "| item | value |", "|---|---|",
+        f"| preset | `{t['preset']}` (policy/presets/{t['preset']}.toml) |",
+        f"| data | {t['dataset_episodes']} expert episodes, {t['dataset_frames']} frames, "
+        f"recorded at {t['dataset_image_size'][0]}x{t['dataset_image_size'][1]}, "
+        f"training seeds{_recording_note(t['dataset'])} |",
+        f"| policy input | 2 cameras resized to {t['policy_image_size'][0]}x"
+        f"{t['policy_image_size'][1]} by {t['image_pipeline']} |",
+        f"| steps | {t['step']} of {t['total_steps']} planned, batch {t['batch_size']} |",
+        f"| precision | {_precision(t)} |",
+        f"| trainer wall time | {t['train_wall_s'] / 3600:.2f} h (while the trainer ran, "
+        "including time paused or sharing the CPU) |",
+        f"| hardware | {hardware} |",
+    ]
+    if eval_info:
+        lines += _eval_rows(eval_info, "success")
+        for other in also or []:
+            lines += _eval_rows(other, "also measured")
+    else:
+        lines.append("| success | not measured yet |")
+    if curve:
+        lines += ["", "Training loss (mean over each logging window):", "",
+                  "| step | loss | lr | samples/s |", "|---|---|---|---|"]
+        lines += [f"| {r['step']} | {r['loss']:.4f} | {r['lr']:.2e} | {r['samples_per_s']} |"
+                  for r in curve]
+    if success_curve:
+        lines += _success_rows(success_curve)
+    lines += ["", "Evaluate: `so101-sim eval --policy policy/pick_place_diffusion --episodes 100`",
+              ""]
+    return "\n".join(lines)
+
+
+def export_policy(checkpoint: Path, dest: Path, eval_dir: Path | None = None,
+                  hardware: str = "2-core CPU (no GPU)",
+                  also_eval: list[Path] | None = None) -> Path:
+    """Copy `checkpoint` (a pretrained_model folder) to `dest` with fp16 weights and a card."""
+    checkpoint, dest = Path(checkpoint), Path(dest)
+    info_path = checkpoint / TRAIN_INFO
+    if not (checkpoint / "model.safetensors").is_file() or not info_path.is_file():
+        raise FileNotFoundError(f"{checkpoint} is not a so101-sim checkpoint (needs "
+                                f"model.safetensors and {TRAIN_INFO}); pass a "
+                                "checkpoints/step_*/pretrained_model folder")
+    check_processor_files(checkpoint)  # never ship a file that would run code when loaded
+    tmp = dest.with_name(dest.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(checkpoint, tmp, ignore=shutil.ignore_patterns("model.safetensors"))
+    _fp16_copy(checkpoint / "model.safetensors", tmp / "model.safetensors")
+    info = json.loads(info_path.read_text())
+    eval_info = None
+    if eval_dir is not None:
+        eval_info = json.loads((Path(eval_dir) / "eval_info.json").read_text())
+        shutil.copy(Path(eval_dir) / "eval_info.json", tmp / "eval_info.json")
+    log = checkpoint.parents[2] / "train_log.jsonl"
+    curve = loss_curve(log) if log.is_file() else []
+    curve = [r for r in curve if r["step"] <= info["step"]]
+    also = [json.loads((Path(d) / "eval_info.json").read_text()) for d in also_eval or []]
+    run = checkpoint.parents[2]
+    success_curve = [r for r in read_curve(run) if r["step"] <= info["step"]]
+    if success_curve:
+        plot_curve(success_curve, tmp / "curve.png")
+    (tmp / "README.md").write_text(model_card(info, eval_info, curve, hardware, also,
+                                              success_curve))
+    shutil.rmtree(dest, ignore_errors=True)
+    tmp.rename(dest)
+    return dest

@@ -1,0 +1,54 @@
+"""Turning a ``--policy`` argument into an ``EvalPolicy``: the expert, a lerobot checkpoint
+directory, or a ``package.module:factory`` of your own. Checkpoints load lazily (torch)."""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+from typing import Any
+
+from so101_sim.expert import ScriptedExpert
+from so101_sim.harness.policies.protocol import EvalPolicy, PolicyInfo, StepPolicy
+from so101_sim.tasks import TaskSpec, load_task
+
+
+def expert_policy(task: str | Path | TaskSpec = "pick_place") -> StepPolicy:
+    """The scripted expert as an ``EvalPolicy`` (reads the true cube pose: no cameras)."""
+    spec = load_task(task)
+    return StepPolicy(lambda: ScriptedExpert(spec),
+                      PolicyInfo(name="expert", needs_env_state=True,
+                                 fingerprint=f"so101_sim.expert.ScriptedExpert/{spec.name}"))
+
+
+def load_policy(spec: str | Path, task: str | Path | TaskSpec = "pick_place",
+                **lerobot_options: Any) -> EvalPolicy:
+    """``"expert"``, a lerobot checkpoint directory, or ``"package.module:factory"`` (a callable
+    taking ``task`` and returning an ``EvalPolicy``)."""
+    text = str(spec)
+    if text == "expert":
+        if lerobot_options:
+            raise ValueError(f"options {sorted(lerobot_options)} apply to lerobot checkpoints, "
+                             "not to --policy expert")
+        return expert_policy(task)
+    path = Path(text).expanduser()
+    if not path.exists() and ":" in text and "/" not in text.split(":", 1)[0]:
+        return _load_factory(text, task)
+    from so101_sim.harness.policies.lerobot import LeRobotPolicy
+
+    return LeRobotPolicy(path, **lerobot_options)
+
+
+def _load_factory(text: str, task: str | Path | TaskSpec) -> EvalPolicy:
+    module_name, _, attr = text.partition(":")
+    try:
+        factory = getattr(importlib.import_module(module_name), attr)
+    except (ImportError, AttributeError) as exc:
+        raise ValueError(f"--policy {text!r}: cannot import {attr!r} from {module_name!r} "
+                         f"({exc}); expected 'expert', a checkpoint directory or "
+                         "'package.module:factory'") from exc
+    policy = factory(task=task)
+    if not isinstance(policy, EvalPolicy):
+        raise ValueError(f"--policy {text!r} returned {type(policy).__name__}, which lacks "
+                         "`info`, `start_episode` or `predict_chunks` (see "
+                         "so101_sim.harness.EvalPolicy)")
+    return policy

@@ -1,0 +1,305 @@
+"""A lerobot policy checkpoint as an ``EvalPolicy`` (diffusion first; ACT-like policies too).
+
+Loading goes through lerobot's factory (``get_policy_class`` + ``from_pretrained``, and
+``make_pre_post_processors(pretrained_path=...)`` for the saved normaliser pipelines), so any
+lerobot policy whose observations match the env loads the way lerobot-eval loads it.
+Observations take lerobot-eval's path: ``preprocess_observation`` (images to float CHW in
+[0, 1], ``agent_pos`` to ``observation.state``), then the saved preprocessor.
+
+Diffusion: the harness keeps the To-step observation history per env itself and calls
+``predict_action_chunk`` with initial noise drawn from a ``torch.Generator`` seeded by the
+episode seed, so the sampled chunk depends only on the episode. With DDIM (eta = 0) that noise
+is the only randomness.
+
+Batching: on CPU a row's result changes bitwise with the batch size (small-batch matmul kernels
+differ) and, at some sizes, with its position in the batch. So every forward has exactly
+``batch_size`` rows (padded with copies of the first), which a load-time check confirms is
+position-independent; if it is not, each env gets its own forward.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+# OpenMP: the harness keeps libgomp's default waits (spin briefly, then sleep):
+# OMP_WAIT_POLICY=PASSIVE made a DDIM-10 forward of 8 rows 2.5x slower here (the U-Net's many
+# small parallel regions each pay a futex wake-up). It runs forwards on half the cores
+# (devices.eval_policy_threads: one thread on 2 cores), so a busy neighbour cannot stall a
+# thread pool at its barriers (benchmarks/bench_busy.py).
+import torch
+
+from so101_sim.harness.camera_map import describe_camera_map, resolve_camera_map
+from so101_sim.harness.policies.protocol import ChunkRequest, PolicyInfo
+from so101_sim.sim import CAMERAS, ENV_STATE_SIZE
+from so101_sim.train.checkpoint import (
+    TRAIN_INFO,
+    check_files,
+    checkpoint_name,
+    load_config,
+    load_processors,
+    load_weights,
+    train_image_size,
+)
+from so101_sim.utils.trust import check_processor_files
+
+STATE_KEY = "observation.state"
+ENV_STATE_KEY = "observation.environment_state"
+IMAGE_PREFIX = "observation.images."
+#: The project's diffusion setting (DESIGN.md): To=2, Tp=16, Ta=8, DDIM with 10 steps.
+STANDARD_DIFFUSION = {"n_obs_steps": 2, "horizon": 16, "n_action_steps": 8,
+                      "noise_scheduler_type": "DDIM", "num_inference_steps": 10}
+DEFAULT_BATCH = 8
+
+
+class LeRobotPolicy:
+    """Loads a lerobot checkpoint directory and answers batched chunk requests.
+
+    ``n_action_steps``, ``num_inference_steps`` and ``noise_scheduler`` override the
+    checkpoint's inference settings (with a warning); None keeps the checkpoint's.
+    ``batch_size``: rows per forward (see the module docstring); 1 = one forward per env.
+    ``camera_map``: policy camera name -> env camera, for checkpoints whose cameras are named
+    after another rig (``so101_sim.harness.camera_map``).
+    """
+
+    def __init__(self, path: str | Path, *, n_action_steps: int | None = None,
+                 num_inference_steps: int | None = None, noise_scheduler: str | None = None,
+                 batch_size: int = DEFAULT_BATCH, device: str = "cpu",
+                 camera_map: dict[str, str] | None = None,
+                 log: Callable[[str], None] = print) -> None:
+        self.path = Path(path).expanduser()
+        self.log = log
+        if batch_size < 1:
+            raise ValueError(f"batch_size={batch_size} is invalid; expected >= 1")
+        check_files(self.path)
+        cfg = load_config(self.path)
+        policy_cams, image_size, self.env_state = _check_features(cfg, self.path)
+        # policy camera name -> env camera that feeds it (--camera-map; identity by default)
+        self.camera_map = resolve_camera_map(policy_cams, camera_map, f"checkpoint {self.path}")
+        self.cameras = tuple(c for c in CAMERAS if c in self.camera_map.values())
+        renamed = {p: e for p, e in self.camera_map.items() if p != e}
+        asked = {"n_action_steps": n_action_steps, "num_inference_steps": num_inference_steps,
+                 "noise_scheduler_type": noise_scheduler}
+        self.is_diffusion = cfg.type == "diffusion"
+        check_processor_files(self.path, cfg.type)  # before lerobot instantiates any step
+        self._apply_settings(cfg, {k: v for k, v in asked.items() if v is not None})
+        cfg.device = device
+        self.cfg = cfg
+        self.policy = load_weights(cfg, self.path)
+        self.pre, self.post = load_processors(cfg, self.path, device)
+        self.batch_size = batch_size
+        self._gens: dict[int, torch.Generator] = {}
+        if batch_size > 1 and not self._batching_is_row_independent():
+            log(f"so101-sim eval: note: a row's actions depend on its position in a "
+                f"{batch_size}-row batch on this machine; running one forward per env so "
+                "results stay independent of --n-envs")
+            self.batch_size = 1
+        self.info = PolicyInfo(
+            name=checkpoint_name(self.path),
+            cameras=self.cameras, needs_env_state=self.env_state, image_size=image_size,
+            train_image_size=train_image_size(self.path),
+            n_obs_steps=self.n_obs_steps, n_action_steps=self.n_action_steps,
+            fingerprint=_fingerprint(self.path, {**asked, "batch_size": self.batch_size,
+                                                 **({"camera_map": renamed} if renamed else {})}),
+            details=self._details(), camera_map=renamed)
+
+    # --------------------------------------------------------------------- settings
+    def _apply_settings(self, cfg: Any, asked: dict[str, Any]) -> None:
+        """Check what the user asked for against the checkpoint; refuse what cannot change."""
+        n_obs = int(getattr(cfg, "n_obs_steps", 1))
+        if self.is_diffusion:
+            limit = cfg.horizon - n_obs + 1
+            if "n_action_steps" in asked and not 1 <= asked["n_action_steps"] <= limit:
+                raise ValueError(f"n_action_steps={asked['n_action_steps']} is invalid for "
+                                 f"{self.path}: horizon {cfg.horizon} and n_obs_steps {n_obs} "
+                                 f"allow 1..{limit}")
+            steps = asked.get("num_inference_steps")
+            if steps is not None and not 1 <= steps <= cfg.num_train_timesteps:
+                raise ValueError(f"num_inference_steps={steps} is invalid; expected "
+                                 f"1..{cfg.num_train_timesteps} (num_train_timesteps)")
+            if asked.get("noise_scheduler_type", "DDIM") not in ("DDIM", "DDPM"):
+                raise ValueError(f"noise_scheduler={asked['noise_scheduler_type']!r} is invalid; "
+                                 "expected 'DDIM' or 'DDPM'")
+        else:
+            other = sorted(set(asked) - {"n_action_steps"})
+            if other:
+                raise ValueError(f"{other} apply to diffusion policies; {self.path} is a "
+                                 f"{cfg.type!r} policy")
+            if "n_action_steps" in asked and not hasattr(cfg, "n_action_steps"):
+                raise ValueError(f"{cfg.type!r} policies have no n_action_steps to override")
+        for key, value in asked.items():
+            if getattr(cfg, key) != value:
+                self.log(f"so101-sim eval: warning: checkpoint {self.path} says "
+                         f"{key}={getattr(cfg, key)!r}; using {value!r} as asked")
+                setattr(cfg, key, value)
+        if self.is_diffusion:
+            have = {k: getattr(cfg, k) for k in STANDARD_DIFFUSION}
+            if have["num_inference_steps"] is None:
+                have["num_inference_steps"] = cfg.num_train_timesteps
+            off = {k: v for k, v in have.items() if v != STANDARD_DIFFUSION[k]}
+            if off:
+                self.log(f"so101-sim eval: warning: {self.path} evaluates with {off}, not the "
+                         f"project's standard {STANDARD_DIFFUSION} (change what inference "
+                         "allows with --n-action-steps, --inference-steps, --noise-scheduler)")
+            if cfg.noise_scheduler_type == "DDPM":
+                self.log("so101-sim eval: warning: DDPM sampling draws noise inside every step "
+                         "from torch's global generator, so an episode's actions also depend on "
+                         "which envs share its batch; use --noise-scheduler DDIM for "
+                         "per-seed results")
+        elif n_obs != 1:
+            raise ValueError(f"{cfg.type!r} policy with n_obs_steps={n_obs} is not supported: "
+                             "the harness feeds observation histories to diffusion policies only")
+        if getattr(cfg, "temporal_ensemble_coeff", None) is not None:
+            raise ValueError(f"{self.path} uses ACT temporal ensembling, which needs a forward "
+                             "every step with state across steps; set temporal_ensemble_coeff="
+                             "null in config.json to evaluate it chunk-wise")
+        self.n_obs_steps = n_obs
+        self.n_action_steps = int(getattr(cfg, "n_action_steps", 1))
+
+    def _details(self) -> dict[str, str]:
+        cfg = self.cfg
+        d = {"policy type": cfg.type, "checkpoint": str(self.path)}
+        if self.is_diffusion:
+            steps = cfg.num_inference_steps or cfg.num_train_timesteps
+            d["To / Tp / Ta"] = f"{cfg.n_obs_steps} / {cfg.horizon} / {cfg.n_action_steps}"
+            d["sampler"] = f"{cfg.noise_scheduler_type}-{steps}, noise seeded per episode"
+        else:
+            d["observations / chunk executed"] = f"{self.n_obs_steps} / {self.n_action_steps}"
+        if any(p != e for p, e in self.camera_map.items()):
+            d["cameras"] = describe_camera_map(self.camera_map)
+        d["batched inference"] = (f"padded to {self.batch_size} rows per forward"
+                                  if self.batch_size > 1 else "one env per forward")
+        return d
+
+    # --------------------------------------------------------------------- EvalPolicy
+    def start_episode(self, slot: int, seed: int) -> None:
+        self._gens[slot] = torch.Generator().manual_seed(int(seed))
+
+    def predict_chunks(self, requests: Sequence[ChunkRequest]) -> np.ndarray:
+        out = []
+        for start in range(0, len(requests), self.batch_size):
+            group = list(requests[start:start + self.batch_size])
+            pad = self.batch_size - len(group)
+            rows = group + [group[0]] * pad
+            batch = self._observation_batch(rows)
+            noise = None
+            if self.is_diffusion:
+                drawn = [self._draw_noise(r.slot) for r in group]
+                noise = torch.stack(drawn + [drawn[0]] * pad)
+            actions = self._predict(batch, noise)
+            out.append(actions[:len(group)].numpy().astype(np.float32))
+        return np.concatenate(out)
+
+    def _draw_noise(self, slot: int) -> torch.Tensor:
+        horizon = self.cfg.horizon
+        dim = self.cfg.output_features["action"].shape[0]
+        return torch.randn((horizon, dim), generator=self._gens[slot], dtype=torch.float32)
+
+    def _observation_batch(self, rows: Sequence[ChunkRequest]) -> dict[str, torch.Tensor]:
+        """Preprocessed inputs: (B, To, ...) for diffusion, (B, ...) otherwise."""
+        from lerobot.envs.utils import preprocess_observation
+
+        steps = []
+        for t in range(self.n_obs_steps):
+            obs = [r.history[t] for r in rows]
+            env_batch: dict[str, Any] = {"agent_pos": np.stack([o["agent_pos"] for o in obs])}
+            if self.cameras:
+                env_batch["pixels"] = {p: np.stack([o["pixels"][e] for o in obs])
+                                       for p, e in self.camera_map.items()}
+            if self.env_state:
+                env_batch["environment_state"] = np.stack(
+                    [o["environment_state"] for o in obs])
+            steps.append(self.pre(preprocess_observation(env_batch)))
+        keys = [k for k in self.cfg.input_features if k in steps[0]]
+        if not self.is_diffusion:
+            return {k: steps[0][k] for k in keys}
+        return {k: torch.stack([s[k] for s in steps], dim=1) for k in keys}
+
+    @torch.no_grad()
+    def _predict(self, batch: dict[str, torch.Tensor],
+                 noise: torch.Tensor | None) -> torch.Tensor:
+        if self.is_diffusion:
+            noise = None if noise is None else noise.to(self.cfg.device)
+            actions = self.policy.predict_action_chunk(batch, noise=noise)
+        else:
+            actions = self.policy.predict_action_chunk(batch)[:, :self.n_action_steps]
+        return self.post(actions).to("cpu", torch.float32)
+
+    def _batching_is_row_independent(self) -> bool:
+        """Do rows come out bitwise the same whatever their position and batch mates?"""
+        gen = torch.Generator().manual_seed(0)
+        batch: dict[str, torch.Tensor] = {}
+        lead = (self.batch_size, self.n_obs_steps) if self.is_diffusion else (self.batch_size,)
+        for key, ft in self.cfg.input_features.items():
+            batch[key] = torch.rand((*lead, *ft.shape), generator=gen).to(self.cfg.device)
+        noise = None
+        if self.is_diffusion:
+            noise = torch.randn((self.batch_size, self.cfg.horizon,
+                                 self.cfg.output_features["action"].shape[0]), generator=gen)
+        first = self._predict(batch, noise)
+        order = torch.roll(torch.arange(self.batch_size), 1)
+        second = self._predict({k: v[order] for k, v in batch.items()},
+                               None if noise is None else noise[order])
+        return torch.equal(first[order], second)
+
+
+# ------------------------------------------------------------------------ loading helpers
+
+def _check_features(cfg: Any, path: Path) -> tuple[tuple[str, ...], Any, bool]:
+    """The camera names, image size and env-state use the checkpoint expects; errors if the
+    env cannot provide them (camera names are matched to env cameras by the caller)."""
+    where = f"checkpoint {path}"
+    cams: list[str] = []
+    sizes: set[tuple[int, int]] = set()
+    env_state = False
+    expected = (f"expected {STATE_KEY} (6,), {IMAGE_PREFIX}<camera> (3, H, W) for cameras "
+                f"{list(CAMERAS)}, and optionally {ENV_STATE_KEY} ({ENV_STATE_SIZE},)")
+    for key, ft in cfg.input_features.items():
+        shape = tuple(ft.shape)
+        if key == STATE_KEY:
+            if shape != (6,):
+                raise ValueError(f"{where} expects {key} of shape {shape}; the env's agent_pos "
+                                 "is (6,) (5 joints in degrees + gripper 0..100)")
+        elif key == ENV_STATE_KEY:
+            if shape != (ENV_STATE_SIZE,):
+                raise ValueError(f"{where} expects {key} of shape {shape}; the env's "
+                                 f"environment_state is ({ENV_STATE_SIZE},)")
+            env_state = True
+        elif key.startswith(IMAGE_PREFIX):
+            cam = key[len(IMAGE_PREFIX):]  # env cameras are matched by resolve_camera_map
+            if len(shape) != 3 or shape[0] != 3:
+                raise ValueError(f"{where} expects {key} of shape {shape}; {expected}")
+            cams.append(cam)
+            sizes.add((int(shape[1]), int(shape[2])))
+        else:
+            raise ValueError(f"{where} expects input {key!r}, which the env does not provide; "
+                             f"{expected}")
+    if len(sizes) > 1:
+        raise ValueError(f"{where} expects cameras at different sizes {sorted(sizes)}; the "
+                         "harness renders both cameras at one size")
+    action = cfg.output_features.get("action")
+    if action is None or tuple(action.shape) != (6,):
+        raise ValueError(f"{where} outputs action of shape "
+                         f"{None if action is None else tuple(action.shape)}; the env takes "
+                         "(6,) absolute joint targets in LeRobot units")
+    return tuple(cams), (sizes.pop() if sizes else None), env_state
+
+
+def _fingerprint(path: Path, settings: dict[str, Any]) -> str:
+    """sha256 over the weights, config and processors, plus the inference settings (batch
+    size included: results are bitwise reproducible for a fixed one)."""
+    h = hashlib.sha256()
+    for f in sorted(path.iterdir()):
+        if f.is_file() and (f.name in ("config.json", "model.safetensors", TRAIN_INFO)
+                            or f.name.startswith(("policy_preprocessor", "policy_postprocessor"))):
+            h.update(f.name.encode())
+            with f.open("rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(block)
+    h.update(json.dumps(settings, sort_keys=True).encode())
+    return h.hexdigest()[:16]

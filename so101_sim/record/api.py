@@ -1,0 +1,157 @@
+"""Record scripted-expert demonstrations as a LeRobotDataset v3, and replay them.
+
+Everything is written through lerobot's own API (``LeRobotDataset.create`` / ``resume``,
+``add_frame``, ``save_episode``, ``finalize``) so the result loads in lerobot unchanged. Each
+frame also carries the episode's reset seed and initial cube pose, so any episode can be
+re-simulated exactly (``replay``). A small JSON sidecar in the dataset folder remembers every
+seed tried (kept or discarded), the noise level, the expert options and the codec, so
+``resume`` never repeats a seed and never mixes settings.
+
+Workers (``--workers N``, local processes or Ray actors through ``so101_sim.workers``)
+simulate, render and encode whole episodes (``record.worker``); this process is the only
+writer and stores episodes in seed order (``record.loop``), so the dataset is the same
+whatever the number of workers or the backend. Every finished episode is spooled before it is
+written and the dataset is checkpointed every ``checkpoint_every`` episodes
+(``dataset.store``): Ctrl-C or SIGTERM ends with a finalized dataset, and after a hard kill
+(SIGKILL, OOM, power loss) ``resume`` ends with every finished episode, no manual step.
+
+DART noise: see ``record.episode``.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from so101_sim.dataset.reader import info_features, read_frames
+from so101_sim.dataset.schema import DEFAULT_REPO_ID, VCODECS, check_seed_range
+from so101_sim.dataset.store import SCRATCH, SIDECAR, read_sidecar
+from so101_sim.record.episode import check_dart_noise, expert_options
+from so101_sim.sim import SO101Env
+from so101_sim.sim.rendering import select_gl_backend
+from so101_sim.tasks import load_task
+from so101_sim.utils.devices import cpu_count
+from so101_sim.utils.video_backend import quiet_libav
+from so101_sim.workers import check_backend
+
+
+def _check_args(n_episodes: int, workers: int, seed_start: int, vcodec: str | None,
+                checkpoint_every: int) -> None:
+    if n_episodes < 1:
+        raise ValueError(f"n_episodes={n_episodes}; expected >= 1")
+    if not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers={workers!r} is invalid; expected an integer >= 1, e.g. "
+                         f"--workers {cpu_count()} (one per CPU core)")
+    if vcodec is not None and vcodec not in VCODECS:
+        raise ValueError(f"vcodec={vcodec!r} is not supported; expected one of "
+                         f"{sorted(VCODECS)} (--vcodec h264 is the fast default)")
+    if not isinstance(checkpoint_every, int) or checkpoint_every < 1:
+        raise ValueError(f"checkpoint_every={checkpoint_every!r} is invalid; expected an "
+                         "integer >= 1 (episodes between dataset checkpoints), e.g. "
+                         "--checkpoint-every 50")
+    check_seed_range(seed_start)
+
+
+
+
+def _task_arg(task: str | Path, root: Path, resume: bool) -> str:
+    """The task as stored in the sidecar: a name, or an absolute .toml path."""
+    if resume and (root / SIDECAR).exists():
+        return str(read_sidecar(root).get("task", task))
+    return str(Path(task).resolve()) if Path(str(task)).suffix == ".toml" else str(task)
+
+
+# ----------------------------------------------------------------------------- record
+
+
+def record(out_dir: str | Path, n_episodes: int, task: str | Path = "pick_place",
+           seed_start: int = 0, image_size: tuple[int, int] = (480, 640),
+           keep_failures: bool = False, resume: bool = False, workers: int = 1,
+           repo_id: str = DEFAULT_REPO_ID, progress: bool = True, dart_noise: float = 0.0,
+           vcodec: str | None = None, recover: bool = False,
+           grasp_clearance: float | None = None, backend: str = "local",
+           ray_address: str | None = None, checkpoint_every: int = 50) -> dict[str, Any]:
+    """Record `n_episodes` expert episodes (only successes unless `keep_failures`) to `out_dir`.
+
+    Seeds run upward from `seed_start` (or, with `resume`, from after the largest seed already
+    tried); episodes are stored in seed order whatever `workers` and `backend` are. `workers`
+    processes (``backend="local"``) or Ray actors (``"ray"``: a local Ray runtime, or the
+    cluster at `ray_address`, ``"auto"`` or ``host:port``) simulate, render and encode.
+    Every finished episode is spooled, and the dataset is checkpointed every
+    `checkpoint_every` episodes and on any exit we can catch (Ctrl-C, SIGTERM); after a hard
+    kill, `resume` recovers every finished episode (see ``dataset.store``). `vcodec` is
+    ``"h264"`` (default for new datasets) or ``"libsvtav1"``; a resumed dataset keeps its own.
+    `dart_noise` is the std of the noise added to executed actions (``run_episode``), 0 for
+    none; `recover` and `grasp_clearance` are ScriptedExpert options (retries; gap between
+    the fixed pad and the cube at the grasp, metres), stored with the dataset. Returns a
+    summary dict (episodes, successes, tried, env_steps, steps_per_s, seconds, and the
+    time_physics / time_render / cpu_seconds spent by all recording processes).
+    """
+    from so101_sim.dataset.writer import open_dataset
+    from so101_sim.record.loop import Tally, record_episodes
+    from so101_sim.record.worker import RecorderSpec
+
+    _check_args(n_episodes, workers, seed_start, vcodec, checkpoint_every)
+    check_backend(backend, ray_address)
+    if backend == "ray":  # say so before a dataset folder is created
+        from so101_sim.workers.ray_pool import import_ray
+
+        import_ray()
+    dart_noise = check_dart_noise(dart_noise)
+    expert = expert_options(recover, grasp_clearance)
+    quiet_libav()
+    select_gl_backend()  # choose (and print) once here: workers inherit MUJOCO_GL
+    root = Path(out_dir)
+    image_size = (int(image_size[0]), int(image_size[1]))
+    task_arg = _task_arg(task, root, resume)
+    spec = load_task(task_arg)
+    if spec.fps != 30:
+        raise ValueError(f"task fps is {spec.fps}; the dataset is recorded at 30 fps")
+    cpu0 = time.process_time()
+    opened = open_dataset(root, resume, repo_id, task_arg, image_size, seed_start, dart_noise,
+                          vcodec, spec.max_steps + 2, expert)
+    side = opened.side
+    tally = Tally(root, side, opened.ds.meta.total_episodes, n_episodes, progress)
+    worker_spec = RecorderSpec(spec, image_size, side["dart_noise"], side["expert"],
+                               keep_failures, opened.encoder_kwargs, spec.max_steps + 2,
+                               str((root / SCRATCH).resolve()))
+    record_episodes(opened, tally, worker_spec, workers, backend, ray_address,
+                    checkpoint_every, spec.description)
+    tally.cpu_seconds += time.process_time() - cpu0
+    return tally.summary(workers, backend)
+
+
+# ----------------------------------------------------------------------------- replay
+def replay(dataset_dir: str | Path, episode: int) -> float:
+    """Re-simulate episode `episode` from its stored seed and actions (state-only env).
+
+    Uses ``action_executed`` where the dataset has it (DART noise), else ``action``. Returns
+    the largest absolute difference between the recorded ``observation.state`` and the
+    re-simulated ``agent_pos`` over the episode; 0 because the simulation is deterministic.
+    """
+    root = Path(dataset_dir)
+    act_key = "action_executed" if "action_executed" in info_features(root) else "action"
+    df = read_frames(root, ["episode_index", "frame_index", "episode_seed",
+                             "observation.state", act_key])
+    ep = df[df["episode_index"] == episode].sort_values("frame_index")
+    if len(ep) == 0:
+        n = df["episode_index"].nunique()
+        raise ValueError(f"episode {episode} not in {root} (it has {n} episodes, 0..{n - 1})")
+    seed = int(np.asarray(ep["episode_seed"].iloc[0]).reshape(-1)[0])
+    states = np.stack([np.asarray(s, dtype=np.float32) for s in ep["observation.state"]])
+    actions = np.stack([np.asarray(a, dtype=np.float32) for a in ep[act_key]])
+    task = read_sidecar(root).get("task", "pick_place")
+
+    env = SO101Env(task=task, obs_type="state")
+    try:
+        obs, _ = env.reset(seed=seed)
+        worst = 0.0
+        for state, action in zip(states, actions, strict=True):
+            worst = max(worst, float(np.max(np.abs(obs["agent_pos"] - state))))
+            obs, *_ = env.step(action)
+    finally:
+        env.close()
+    return worst

@@ -1,0 +1,134 @@
+"""Checkpoints: lerobot's pretrained-policy folders as ``train`` writes and everything loads them.
+
+A checkpoint is ``config.json`` + ``model.safetensors`` + the saved pre/post-processor
+pipelines, plus our sidecar ``so101_sim_train.json`` (preset, step, the image sizes training
+recorded and used). One loader for all readers (the harness, ``explain``, ``curve``,
+``export``): files are checked first, processor files that would import code are refused
+(``utils.trust``), then lerobot's own factory builds the policy. torch loads on first use.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+from typing import Any
+
+from so101_sim.utils.trust import check_processor_files
+
+#: The sidecar ``train`` writes beside each checkpoint's weights.
+TRAIN_INFO = "so101_sim_train.json"
+
+
+def check_files(path: Path) -> None:
+    hint = ("expected a lerobot checkpoint directory with config.json, model.safetensors and "
+            "policy_preprocessor.json/policy_postprocessor.json (lerobot-train writes them to "
+            "outputs/train/<run>/checkpoints/<step>/pretrained_model), or --policy expert")
+    if not path.is_dir():
+        raise FileNotFoundError(f"policy checkpoint {path} not found; {hint}")
+    for name in ("config.json", "model.safetensors", "policy_preprocessor.json",
+                 "policy_postprocessor.json"):
+        if not (path / name).is_file():
+            raise FileNotFoundError(f"policy checkpoint {path} has no {name}; {hint}")
+
+
+def load_config(path: Path) -> Any:
+    import lerobot.policies  # noqa: F401  (registers the policy config types)
+    from lerobot.configs.policies import PreTrainedConfig
+
+    try:
+        raw = json.loads((path / "config.json").read_text())
+        policy_type = raw["type"]
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path / 'config.json'} is not a lerobot policy config ({exc!r}); "
+                         "re-export the checkpoint with policy.save_pretrained()") from exc
+    try:
+        return PreTrainedConfig.from_pretrained(path)
+    except Exception as exc:
+        raise ValueError(f"{path / 'config.json'} (policy type {policy_type!r}) could not be "
+                         f"parsed by lerobot: {exc}") from exc
+
+
+def load_weights(cfg: Any, path: Path) -> Any:
+    from lerobot.policies.factory import get_policy_class
+
+    try:
+        policy_cls = get_policy_class(cfg.type)
+    except Exception as exc:
+        raise ValueError(f"{path}: lerobot has no policy type {cfg.type!r} ({exc})") from exc
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            policy = policy_cls.from_pretrained(path, config=cfg, strict=True)
+    except Exception as exc:
+        raise RuntimeError(f"{path / 'model.safetensors'} could not be loaded into a "
+                           f"{cfg.type!r} policy built from config.json: "
+                           f"{type(exc).__name__}: {str(exc)[:300]}") from exc
+    policy.eval()
+    policy.reset()
+    return policy
+
+
+def load_processors(cfg: Any, path: Path, device: str) -> tuple[Any, Any]:
+    from lerobot.policies.factory import make_pre_post_processors
+
+    try:
+        return make_pre_post_processors(
+            cfg, pretrained_path=str(path),
+            preprocessor_overrides={"device_processor": {"device": device}},
+            postprocessor_overrides={"device_processor": {"device": "cpu"}})
+    except Exception as exc:
+        raise RuntimeError(f"the saved pre/post-processors in {path} could not be loaded: "
+                           f"{type(exc).__name__}: {str(exc)[:300]}") from exc
+
+
+def train_image_size(path: Path) -> tuple[int, int] | None:
+    f = path / TRAIN_INFO
+    if not f.exists():
+        return None
+    try:
+        h, w = (int(v) for v in json.loads(f.read_text())["dataset_image_size"])
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{f} is invalid ({exc!r}); expected "
+                         '{"dataset_image_size": [height, width]}') from exc
+    return h, w
+
+
+def checkpoint_name(path: Path) -> str:
+    """<run>-<step> for lerobot-train's .../<run>/checkpoints/<step>/pretrained_model."""
+    p = path.resolve()
+    if p.name == "pretrained_model" and p.parent.parent.name == "checkpoints":
+        return f"{p.parents[2].name}-{p.parent.name}"
+    return p.name
+
+
+def read_train_info(path: str | Path) -> dict[str, Any] | None:
+    """The checkpoint's ``so101_sim_train.json`` as a dict (None if it has none)."""
+    f = Path(path) / TRAIN_INFO
+    if not f.is_file():
+        return None
+    try:
+        info = json.loads(f.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{f} is not valid JSON ({exc}); re-export the checkpoint") from exc
+    if not isinstance(info, dict):
+        raise ValueError(f"{f} holds {type(info).__name__}; expected a JSON object")
+    return info
+
+
+def load_checkpoint(path: str | Path, device: str = "cpu",
+                    expect_type: str | None = None) -> tuple[Any, Any, Any, Any]:
+    """(config, policy in eval mode, preprocessor, postprocessor) of a checkpoint folder."""
+    path = Path(path).expanduser()
+    if path.is_dir():  # a crafted processor file is refused first, whatever else is missing
+        check_processor_files(path, expect_type)
+    check_files(path)
+    cfg = load_config(path)
+    if expect_type is not None and cfg.type != expect_type:
+        raise ValueError(f"{path} holds a {cfg.type!r} policy; expected a {expect_type!r} "
+                         "checkpoint")
+    check_processor_files(path, cfg.type)  # before lerobot instantiates any step
+    cfg.device = device
+    policy = load_weights(cfg, path)
+    pre, post = load_processors(cfg, path, device)
+    return cfg, policy, pre, post

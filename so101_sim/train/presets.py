@@ -1,0 +1,150 @@
+"""Diffusion Policy presets (`policy/presets/*.toml`): lerobot config plus training settings.
+
+A preset must set every `DiffusionConfig` field that changes the model or its training, so no
+lerobot default leaks in silently (0.6.1's defaults differ from the seed); the loader refuses a
+preset with a missing or unknown field. Only the features (taken from the dataset) and the hub
+bookkeeping fields are left out.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from so101_sim.utils.paths import policy_dir
+
+# Fields that describe where a config came from or goes to, not the model.
+NOT_IN_PRESET = frozenset({"input_features", "output_features", "repo_id", "private", "tags",
+                           "license", "pretrained_path", "pretrained_revision"})
+# TOML has no null: these fields use an empty value to mean None.
+_EMPTY_MEANS_NONE = {"pretrained_backbone_weights": "", "resize_shape": [], "crop_shape": []}
+_TUPLE_FIELDS = {"down_dims", "crop_shape", "resize_shape", "optimizer_betas"}
+IMAGE_NORMALIZATIONS = ("imagenet", "dataset")
+
+
+class PresetError(ValueError):
+    """A preset file is missing, malformed, or does not set every field."""
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    batch_size: int
+    steps: int
+    seed: int
+    checkpoint_every: int
+    log_every: int
+    num_workers: int
+    ema_power: float
+    ema_max_decay: float
+    ema_inv_gamma: float
+    ema_min_decay: float
+    ema_update_after_step: int
+
+
+@dataclass(frozen=True)
+class Preset:
+    name: str
+    description: str
+    image_size: tuple[int, int]      # frames are resized to this before the policy
+    image_normalize: str             # "imagenet" or "dataset" mean/std for pixels
+    train: TrainSettings
+    diffusion: dict[str, Any]        # DiffusionConfig kwargs, None/tuples restored
+    path: Path
+
+
+def available_presets() -> list[str]:
+    return sorted(p.stem for p in (policy_dir() / "presets").glob("*.toml"))
+
+
+def preset_path(name_or_path: str | Path) -> Path:
+    p = Path(name_or_path)
+    if p.suffix == ".toml":
+        if not p.is_file():
+            raise PresetError(f"preset file {str(p)!r} does not exist; pass a preset name "
+                              f"({', '.join(available_presets())}) or an existing .toml path")
+        return p
+    p = policy_dir() / "presets" / f"{name_or_path}.toml"
+    if not p.is_file():
+        raise PresetError(f"unknown preset {str(name_or_path)!r}; expected one of "
+                          f"{available_presets()} or a path to a .toml preset")
+    return p
+
+
+def _diffusion_fields() -> set[str]:
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+
+    return {f.name for f in dataclasses.fields(DiffusionConfig)} - NOT_IN_PRESET
+
+
+def _convert_diffusion(raw: dict[str, Any], where: Path) -> dict[str, Any]:
+    expected = _diffusion_fields()
+    missing, unknown = expected - raw.keys(), raw.keys() - expected
+    if missing or unknown:
+        raise PresetError(f"{where}: [diffusion] must set every DiffusionConfig field exactly "
+                          f"once; missing {sorted(missing)}, unknown {sorted(unknown)}. Add the "
+                          "missing ones explicitly (lerobot's defaults differ from the seed).")
+    out: dict[str, Any] = {}
+    for key, value in raw.items():
+        if key in _EMPTY_MEANS_NONE and value == _EMPTY_MEANS_NONE[key]:
+            value = None
+        elif key in _TUPLE_FIELDS:
+            value = tuple(value)
+        out[key] = value
+    from lerobot.configs import NormalizationMode
+
+    out["normalization_mapping"] = {k: NormalizationMode(v)
+                                    for k, v in raw["normalization_mapping"].items()}
+    return out
+
+
+def load_preset(name_or_path: str | Path) -> Preset:
+    """Read and validate a preset by name (`seed`, `cpu`) or .toml path."""
+    path = preset_path(name_or_path)
+    try:
+        raw = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise PresetError(f"{path}: not valid TOML ({e}); fix the syntax") from None
+    try:
+        images, train = raw["images"], raw["train"]
+        size = tuple(int(v) for v in images["size"])
+        norm = images["normalize"]
+        settings = TrainSettings(**train)
+        diffusion = _convert_diffusion(raw["diffusion"], path)
+        name, description = raw["name"], raw.get("description", "")
+    except KeyError as e:
+        raise PresetError(f"{path}: missing key {e}; a preset needs name, [images] size/normalize, "
+                          "[train] and [diffusion] (see policy/presets/seed.toml)") from None
+    except TypeError as e:
+        raise PresetError(f"{path}: bad [train] section ({e}); compare with "
+                          "policy/presets/seed.toml") from None
+    if len(size) != 2 or min(size) < 16:
+        raise PresetError(f"{path}: [images] size {list(size)} must be [height, width], each >= 16")
+    if norm not in IMAGE_NORMALIZATIONS:
+        raise PresetError(f"{path}: [images] normalize {norm!r} must be one of "
+                          f"{IMAGE_NORMALIZATIONS}")
+    return Preset(name=name, description=description, image_size=size, image_normalize=norm,
+                  train=settings, diffusion=diffusion, path=path)
+
+
+def make_config(preset: Preset, input_features: dict, output_features: dict):
+    """Build lerobot's `DiffusionConfig` from a preset and the dataset's features."""
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+
+    return DiffusionConfig(input_features=input_features, output_features=output_features,
+                           **preset.diffusion)
+
+
+def policy_features(image_size: tuple[int, int], cameras: tuple[str, ...] = ("front", "side"),
+                    state_dim: int = 6) -> tuple[dict, dict]:
+    """lerobot input/output features for this env's observations at the policy image size."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    inputs = {"observation.state": PolicyFeature(FeatureType.STATE, (state_dim,))}
+    for cam in cameras:
+        inputs[f"observation.images.{cam}"] = PolicyFeature(FeatureType.VISUAL,
+                                                            (3, *image_size))
+    outputs = {"action": PolicyFeature(FeatureType.ACTION, (state_dim,))}
+    return inputs, outputs

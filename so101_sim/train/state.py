@@ -1,0 +1,79 @@
+"""A training run folder's state on disk: finding checkpoints, reading them safely, and the
+checks a resume makes before it continues (same architecture, a clean log).
+
+`training_state.pt` holds tensors and plain values only and is read with
+``torch.load(weights_only=True)``: a crafted file from someone else cannot run code.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import pickle
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from so101_sim.train.presets import Preset
+
+
+class TrainError(RuntimeError):
+    """Bad training input (dataset, preset, run folder)."""
+
+
+def list_checkpoints(out: Path) -> list[Path]:
+    return sorted(p.parent for p in (out / "checkpoints").glob("step_*/training_state.pt"))
+
+
+def architecture(preset: Preset) -> dict[str, Any]:
+    """What a preset fixes about the model: its DiffusionConfig fields and image size."""
+    arch = json.loads(json.dumps(preset.diffusion, default=str))
+    arch["image_size"] = list(preset.image_size)
+    return arch
+
+
+def check_same_architecture(state: dict[str, Any], preset: Preset, out: Path) -> None:
+    old = state.get("preset_arch")
+    if old is None:
+        return  # older run: load_state_dict reports a mismatch
+    new = architecture(preset)
+    changed = sorted(k for k in old.keys() | new.keys()
+                     if k not in ("device",) and old.get(k) != new.get(k))
+    if changed:
+        diff = "; ".join(f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in changed[:6])
+        raise TrainError(f"{out} was started with preset {preset.name!r} as it was then, and "
+                         f"{preset.path} differs now ({diff}); resume with the original preset "
+                         "file, or start a new --out for the new settings")
+
+
+def load_training_state(path: Path, device: str) -> dict[str, Any]:
+    """A checkpoint's training state, unpickled with weights_only=True (no code can run)."""
+    try:
+        return torch.load(path, map_location=device, weights_only=True)
+    except pickle.UnpicklingError as e:
+        raise TrainError(f"{path} holds objects other than tensors and plain values, so it is "
+                         f"not loaded (that could run code): {str(e).splitlines()[0]}. Such a "
+                         "run folder (older, or made elsewhere) cannot be resumed; start a new "
+                         "--out (its pretrained_model/ still evaluates)"
+                         ) from None
+    except (RuntimeError, EOFError, OSError) as e:
+        raise TrainError(f"{path} cannot be read ({e}); delete that checkpoint folder to "
+                         "resume from the one before it") from None
+
+
+def truncate_log(path: Path, step: int) -> None:
+    """Drop log lines past `step` (written after the checkpoint a resume starts from) and a
+    torn line a kill left mid-write, so the next record starts on a line of its own."""
+    if not path.is_file():
+        return
+    keep = []
+    for n, ln in enumerate(path.read_text().splitlines(), 1):
+        try:
+            rec = json.loads(ln)
+        except json.JSONDecodeError:
+            print(f"so101-sim train: {path}: dropped unreadable line {n} (cut by a kill?)")
+            continue
+        if isinstance(rec, dict) and rec.get("step", math.inf) <= step:
+            keep.append(ln)
+    path.write_text("".join(ln + "\n" for ln in keep))

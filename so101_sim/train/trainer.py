@@ -1,0 +1,381 @@
+"""Train lerobot's DiffusionPolicy on a recorded LeRobotDataset, fast on CPU, with EMA weights.
+
+What differs from `lerobot-train`: frames are decoded and resized once into memory
+(`frame_cache`), batches are gathered by array indexing with lerobot's padding rules, an EMA copy
+of the weights is kept (diffusers' `EMAModel`, the seed's power 0.75 / max 0.9999) and is what
+gets saved for evaluation, and `--resume` restores every RNG so a resumed run is the same run.
+
+Run layout under `out/`:
+    checkpoints/step_NNNNNNN/pretrained_model/   EMA weights in lerobot's format (+ processors)
+    checkpoints/step_NNNNNNN/training_state.pt   raw weights, optimiser, scheduler, EMA, RNGs
+                                                 (tensors and plain values only: it loads
+                                                 with torch.load(weights_only=True), so a
+                                                 crafted file cannot run code on --resume)
+    pretrained_model/                            the final EMA policy
+    train_log.jsonl                              step, loss, lr, samples/s, EMA decay
+    frame_cache/                                 decoded frames (.npy)
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import shutil
+import signal
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+# OpenMP waits stay libgomp's default (spin briefly, then sleep): OMP_WAIT_POLICY=PASSIVE made a
+# cpu-preset step 1.2x slower on an idle machine. Next to a busy process, AdaptiveThreads stops
+# the pool from waiting on a thread that lost its core.
+import torch
+from tqdm import tqdm
+
+from so101_sim.dataset.reader import NotADatasetError, open_lerobot_dataset
+from so101_sim.train.checkpoint import TRAIN_INFO
+from so101_sim.train.frame_cache import load_frames
+from so101_sim.train.presets import Preset, load_preset, make_config, policy_features
+from so101_sim.train.state import (
+    TrainError,
+    architecture,
+    check_same_architecture,
+    list_checkpoints,
+    load_training_state,
+    truncate_log,
+)
+from so101_sim.train.threads import AdaptiveThreads, BatchParts
+from so101_sim.utils.devices import resolve_device, resolve_precision
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+#: Training precision: fp32, or bf16 autocast (CPU with AMX/AVX512-BF16: 1.45x faster per
+#: cpu-preset step here; CUDA); weights, optimiser and EMA stay fp32. "auto": see devices.py.
+PRECISIONS = ("auto", "fp32", "bf16")
+
+
+# ----------------------------------------------------------------------------- data
+
+
+@dataclass
+class DemoArrays:
+    """Everything training reads, in memory: states, actions, frames and episode bounds."""
+
+    state: np.ndarray                 # [N, 6] float32
+    action: np.ndarray                # [N, 6] float32
+    frames: dict[str, np.ndarray]     # camera key -> uint8 [N, 3, h, w]
+    episode_from: np.ndarray          # [N] first index of each frame's episode
+    episode_to: np.ndarray            # [N] one past its last index
+    starts: np.ndarray                # frame indices a sample may be centred on
+
+
+def load_demos(dataset, preset: Preset, cache_dir: Path | None) -> DemoArrays:
+    """Read a LeRobotDataset into `DemoArrays` for `preset` (frames resized to its image size)."""
+    cfg = preset.diffusion
+    hf = dataset.hf_dataset.with_format("numpy")
+    state = np.asarray(hf["observation.state"], dtype=np.float32)
+    action = np.asarray(hf["action"], dtype=np.float32)
+    index = np.asarray(hf["index"])
+    if not np.array_equal(index, np.arange(len(index))):
+        raise TrainError(f"dataset {dataset.meta.root}: frame indices are not 0..N-1 in order; "
+                         "train on a dataset written by `so101-sim record` or lerobot")
+    ep_from = np.empty(len(index), dtype=np.int64)
+    ep_to = np.empty(len(index), dtype=np.int64)
+    starts = []
+    drop = int(cfg["drop_n_last_frames"])
+    for row in dataset.meta.episodes:
+        lo, hi = int(row["dataset_from_index"]), int(row["dataset_to_index"])
+        ep_from[lo:hi], ep_to[lo:hi] = lo, hi
+        starts.append(np.arange(lo, max(lo + 1, hi - drop)))
+    frames = load_frames(dataset, preset.image_size, cache_dir)
+    return DemoArrays(state, action, frames, ep_from, ep_to, np.concatenate(starts))
+
+
+def gather_batch(demos: DemoArrays, idx: np.ndarray, n_obs: int, horizon: int) -> dict:
+    """A training batch centred on frames `idx`, padded at episode edges as lerobot does.
+
+    Observation steps are t-n_obs+1..t and action steps t-n_obs+1..t-n_obs+horizon; indices
+    outside the episode repeat its edge frame and are flagged in `action_is_pad`.
+    """
+    lo, hi = demos.episode_from[idx, None], demos.episode_to[idx, None] - 1
+    obs_raw = idx[:, None] + np.arange(1 - n_obs, 1)[None]
+    act_raw = idx[:, None] + np.arange(1 - n_obs, 1 - n_obs + horizon)[None]
+    obs_i = np.clip(obs_raw, lo, hi)
+    act_i = np.clip(act_raw, lo, hi)
+    batch: dict[str, Any] = {
+        "observation.state": torch.from_numpy(demos.state[obs_i]),
+        "action": torch.from_numpy(demos.action[act_i]),
+        "action_is_pad": torch.from_numpy((act_raw < lo) | (act_raw > hi)),
+    }
+    for key, arr in demos.frames.items():
+        batch[key] = torch.from_numpy(arr[obs_i]).float().div_(255.0)
+    return batch
+
+
+def normalization_stats(dataset, preset: Preset) -> dict[str, dict[str, torch.Tensor]]:
+    """State/action stats from the dataset; pixel mean/std per the preset."""
+    stats: dict[str, dict[str, torch.Tensor]] = {}
+    for key in ("observation.state", "action"):
+        stats[key] = {k: torch.as_tensor(np.asarray(v), dtype=torch.float32)
+                      for k, v in dataset.meta.stats[key].items()}
+    for key in dataset.meta.video_keys:
+        if preset.image_normalize == "imagenet":
+            mean, std = torch.tensor(IMAGENET_MEAN), torch.tensor(IMAGENET_STD)
+        else:
+            mean = torch.as_tensor(np.asarray(dataset.meta.stats[key]["mean"])).reshape(3)
+            std = torch.as_tensor(np.asarray(dataset.meta.stats[key]["std"])).reshape(3)
+        stats[key] = {"mean": mean.reshape(3, 1, 1).float(), "std": std.reshape(3, 1, 1).float()}
+    return stats
+
+
+# ----------------------------------------------------------------------------- run
+
+
+@dataclass
+class TrainResult:
+    out: Path
+    step: int
+    final_loss: float
+    wall_s: float
+    samples_per_s: float
+    pretrained_dir: Path
+
+
+
+def _save_pretrained(policy, ema, pre, post, dest: Path, info: dict) -> None:
+    """EMA weights in lerobot's pretrained format, written atomically."""
+    tmp = dest.with_name(dest.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shadow = copy.deepcopy(policy)
+    ema.copy_to(shadow.parameters())
+    shadow.save_pretrained(tmp)
+    pre.save_pretrained(tmp)
+    post.save_pretrained(tmp)
+    (tmp / TRAIN_INFO).write_text(json.dumps(info, indent=2) + "\n")
+    shutil.rmtree(dest, ignore_errors=True)
+    tmp.rename(dest)
+
+
+def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | None = None,
+          batch_size: int | None = None, resume: bool = False, keep_checkpoints: int = 3,
+          progress: bool = True, log_every: int | None = None,
+          precision: str = "fp32", device: str = "cpu",
+          threads: int | None = None, stop_at: int | None = None) -> TrainResult:
+    """Train `preset_name` on the dataset at `dataset_dir`; see the module docstring.
+
+    `device` is auto|cpu|cuda|mps (`devices.resolve_device`); `precision` fp32|bf16|auto.
+    `threads`: torch CPU threads, fixed; None on the CPU: fitted to the cores other
+    processes leave (`train.threads.AdaptiveThreads`), so a busy neighbour does not stall
+    the thread pool.
+    `stop_at`: save and return at this step while the schedule stays sized for `steps`, so a
+    short run is the prefix of the long one (`resume=True` later continues it exactly).
+    """
+    from diffusers.optimization import get_scheduler
+    from diffusers.training_utils import EMAModel
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    preset = load_preset(preset_name)
+    ts = preset.train
+    steps = int(steps if steps is not None else ts.steps)
+    batch_size = int(batch_size if batch_size is not None else ts.batch_size)
+    log_every = int(log_every or ts.log_every)
+    if precision not in PRECISIONS:
+        raise TrainError(f"precision={precision!r} is invalid; expected one of {PRECISIONS}")
+    try:
+        device = resolve_device(device)
+    except ValueError as e:
+        raise TrainError(str(e)) from None
+    precision = resolve_precision(precision, device)
+    if steps < 1 or batch_size < 1:
+        raise TrainError(f"--steps {steps} and --batch-size {batch_size} must both be >= 1")
+    if stop_at is not None and not 1 <= stop_at <= steps:
+        raise TrainError(f"--stop-at {stop_at} is outside 1..--steps ({steps}); give the step "
+                         "to pause at, at most the run's total steps")
+    end = steps if stop_at is None else stop_at
+    out = Path(out)
+    existing = list_checkpoints(out)
+    if existing and not resume:
+        raise TrainError(f"{out} already holds checkpoints (last {existing[-1].name}); pass "
+                         "--resume to continue that run or choose another --out")
+    if resume and not existing:
+        what = ("does not exist" if not out.exists()
+                else "holds no checkpoint with a training_state.pt")
+        raise TrainError(f"--resume: {out} {what}, so there is nothing to continue; check --out, "
+                         "or start a new run without --resume")
+    try:
+        dataset = open_lerobot_dataset(dataset_dir)
+    except NotADatasetError as exc:
+        raise TrainError(str(exc)) from None
+    missing = [k for k in ("observation.state", "action") if k not in dataset.meta.features]
+    if missing:
+        raise TrainError(f"dataset {dataset_dir} lacks {missing}; expected a so101-sim recording")
+    cams = tuple(k.split(".")[-1] for k in dataset.meta.video_keys)
+
+    torch.manual_seed(ts.seed)
+    rng = np.random.default_rng(ts.seed)
+    cfg = make_config(preset, *policy_features(preset.image_size, cams,
+                                               dataset.meta.features["action"]["shape"][0]))
+    cfg.device = device
+    policy = DiffusionPolicy(cfg)
+    policy.to(device)
+    policy.train()
+    pre, post = make_pre_post_processors(cfg, dataset_stats=normalization_stats(dataset, preset))
+    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=cfg.optimizer_lr,
+                                  betas=cfg.optimizer_betas, eps=cfg.optimizer_eps,
+                                  weight_decay=cfg.optimizer_weight_decay)
+    scheduler = get_scheduler(cfg.scheduler_name, optimizer=optimizer,
+                              num_warmup_steps=cfg.scheduler_warmup_steps,
+                              num_training_steps=steps)
+    ema = EMAModel(policy.parameters(), decay=ts.ema_max_decay, min_decay=ts.ema_min_decay,
+                   update_after_step=ts.ema_update_after_step, use_ema_warmup=True,
+                   inv_gamma=ts.ema_inv_gamma, power=ts.ema_power)
+    step, wall_before = 0, 0.0
+    precision_history = [[0, precision]]  # [first step, precision] per stretch of the run
+    log_path = out / "train_log.jsonl"
+    if existing and resume:
+        state = load_training_state(existing[-1] / "training_state.pt", device)
+        if state["preset"] != preset.name or state["dataset"] != str(Path(dataset_dir).resolve()):
+            raise TrainError(f"{out} was trained with preset {state['preset']!r} on "
+                             f"{state['dataset']}; resume it with the same --preset and --dataset")
+        check_same_architecture(state, preset, out)
+        try:
+            policy.load_state_dict(state["model"])
+        except RuntimeError as e:
+            raise TrainError(f"{out}: the checkpoint's weights do not fit preset "
+                             f"{preset.name!r} as it is now ({str(e).splitlines()[0]}); the "
+                             "preset file changed since the run started: resume with the "
+                             "preset file the run was started with") from None
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        ema.load_state_dict(state["ema"])
+        torch.set_rng_state(state["torch_rng"].cpu())
+        if device == "cuda" and "cuda_rng" in state:
+            torch.cuda.set_rng_state(state["cuda_rng"].cpu())
+        rng.bit_generator.state = state["numpy_rng"]
+        step, wall_before = state["step"], state["wall_s"]
+        history = state.get("precision_history", [[0, state.get("precision", "fp32")]])
+        if history[-1][1] != precision:
+            print(f"so101-sim train: precision changed {history[-1][1]} -> {precision} at step "
+                  f"{step}; so101_sim_train.json and the model card record both")
+            history = [*history, [step, precision]]
+        precision_history = history
+        if state["steps"] != steps:
+            print(f"so101-sim train: total steps changed {state['steps']} -> {steps}; the cosine "
+                  "schedule is stretched from here on")
+        truncate_log(log_path, step)
+        if stop_at is not None and step >= stop_at:
+            raise TrainError(f"--stop-at {end}: {out} is already at step {step}; give a later "
+                             "--stop-at, or leave it out to train to --steps")
+    start_step = step
+    out.mkdir(parents=True, exist_ok=True)
+    demos = load_demos(dataset, preset, out / "frame_cache")
+    info = {"preset": preset.name, "preset_file": str(preset.path), "dataset": str(dataset_dir),
+            "dataset_episodes": dataset.meta.total_episodes,
+            "dataset_frames": dataset.meta.total_frames,
+            "dataset_image_size": list(dataset.meta.features[dataset.meta.video_keys[0]]
+                                       ["shape"][:2]),
+            "policy_image_size": list(preset.image_size),
+            "image_pipeline": "so101_sim.utils.image_pipeline.resize_frames (bilinear, antialias)",
+            "weights": "EMA", "batch_size": batch_size,
+            "precision": precision, "precision_history": precision_history, "total_steps": steps,
+            "device": device,
+            "train_settings": asdict(ts)}
+
+    stop = {"signal": None}
+
+    def on_signal(signum, _frame):
+        stop["signal"] = signum
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    n_obs, horizon = cfg.n_obs_steps, cfg.horizon
+
+    def save(at_step: int, wall: float, loss: float) -> Path:
+        ck = out / "checkpoints" / f"step_{at_step:07d}"
+        ck.mkdir(parents=True, exist_ok=True)
+        meta = {**info, "step": at_step, "train_wall_s": round(wall, 1), "last_loss": loss}
+        _save_pretrained(policy, ema, pre, post, ck / "pretrained_model", meta)
+        torch.save({"model": policy.state_dict(), "optimizer": optimizer.state_dict(),
+                    "scheduler": scheduler.state_dict(), "ema": ema.state_dict(),
+                    "torch_rng": torch.get_rng_state(), "numpy_rng": rng.bit_generator.state,
+                    **({"cuda_rng": torch.cuda.get_rng_state()} if device == "cuda" else {}),
+                    "step": at_step, "steps": steps, "wall_s": wall, "preset": preset.name,
+                    "precision_history": precision_history,
+                    "preset_arch": architecture(preset),
+                    "dataset": str(Path(dataset_dir).resolve())}, ck / "training_state.tmp")
+        (ck / "training_state.tmp").replace(ck / "training_state.pt")
+        for old_ck in list_checkpoints(out)[:-keep_checkpoints]:
+            (old_ck / "training_state.pt").unlink()  # keep its EMA policy, drop the bulk
+        return ck
+
+    if threads:
+        torch.set_num_threads(threads)
+    tuner = AdaptiveThreads() if device == "cpu" and not threads else None
+    run_parts = BatchParts()
+
+    def batch_loss(part: dict) -> torch.Tensor:
+        with torch.autocast(device, dtype=torch.bfloat16, enabled=precision == "bf16"):
+            return policy.forward(part)[0]
+
+    desc = f"train {preset.name}" + (f" (to {end} of {steps})" if end < steps else "")
+    bar = tqdm(total=end, initial=step, desc=desc, unit="step",
+               disable=not progress, dynamic_ncols=True)
+    t0, loss_val, window = time.perf_counter(), math.nan, []
+    log = log_path.open("a")
+    try:
+        while step < end and stop["signal"] is None:
+            t_step = time.perf_counter()
+            idx = rng.choice(demos.starts, size=batch_size)
+            batch = pre(gather_batch(demos, idx, n_obs, horizon))
+            optimizer.zero_grad(set_to_none=True)
+            loss_val = run_parts(batch_loss, batch, tuner.parts if tuner else 1)
+            optimizer.step()
+            scheduler.step()
+            ema.step(policy.parameters())
+            step += 1
+            window.append((loss_val, time.perf_counter() - t_step))
+            if tuner is not None:
+                tuner.after_step(step, window[-1][1])
+            if step % log_every == 0 or step == end:
+                mean_loss = float(np.mean([w[0] for w in window]))
+                sps = batch_size * len(window) / sum(w[1] for w in window)
+                log.write(json.dumps({"step": step, "loss": round(mean_loss, 6),
+                                      "lr": scheduler.get_last_lr()[0],
+                                      "samples_per_s": round(sps, 2),
+                                      "threads": torch.get_num_threads(),
+                                      "parts": tuner.parts if tuner else 1,
+                                      "ema_decay": round(ema.cur_decay_value or 0.0, 6),
+                                      "wall_s": round(wall_before + time.perf_counter() - t0, 1)})
+                          + "\n")
+                log.flush()
+                bar.set_postfix(loss=f"{mean_loss:.4f}", samples_s=f"{sps:.1f}")
+                window.clear()
+            bar.update(1)
+            if step % ts.checkpoint_every == 0 and step < end:
+                save(step, wall_before + time.perf_counter() - t0, loss_val)
+        wall = wall_before + time.perf_counter() - t0
+        ck = save(step, wall, loss_val)
+    finally:
+        run_parts.close()
+        bar.close()
+        log.close()
+        for s, h in old.items():
+            signal.signal(s, h)
+    if stop["signal"] is not None:
+        raise KeyboardInterrupt(f"stopped by signal {stop['signal']} at step {step}; "
+                                f"checkpoint {ck}")
+    final = ck / "pretrained_model"
+    if step == steps:  # the run's own policy; a pause at --stop-at leaves only its checkpoint
+        final = out / "pretrained_model"
+        shutil.rmtree(final, ignore_errors=True)
+        shutil.copytree(ck / "pretrained_model", final)
+    run_s = time.perf_counter() - t0
+    return TrainResult(out=out, step=step, final_loss=loss_val, wall_s=wall,
+                       samples_per_s=(step - start_step) * batch_size / max(run_s, 1e-9),
+                       pretrained_dir=final)
+
+

@@ -1,0 +1,100 @@
+"""Which torch device and precision `train` and `eval` run on: `--device auto|cpu|cuda|mps`.
+
+`auto` takes CUDA, then Apple's MPS, then the CPU. Precision `auto` takes bfloat16 autocast
+where the device has fast bf16 (CUDA with bf16 support; CPUs with AMX or AVX512-BF16, where it
+was 1.4x faster per training step here) and fp32 elsewhere. Weights, optimiser state and EMA
+stay fp32 either way. torch is imported lazily: `import so101_sim` stays light.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+DEVICES = ("auto", "cpu", "cuda", "mps")
+PRECISIONS = ("auto", "fp32", "bf16")
+
+
+def resolve_device(name: str = "auto") -> str:
+    """A concrete torch device type for `name`; refuses one this machine does not have."""
+    import torch
+
+    if name not in DEVICES:
+        raise ValueError(f"device={name!r} is invalid; expected one of {DEVICES}")
+    has_mps = bool(getattr(torch.backends, "mps", None)) and torch.backends.mps.is_available()
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "mps" if has_mps else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda: torch sees no CUDA GPU here (torch "
+                         f"{torch.__version__}); use --device auto or cpu, or install a CUDA "
+                         "build of torch on a machine with an NVIDIA GPU")
+    if name == "mps" and not has_mps:
+        raise ValueError("--device mps: Apple's Metal backend is not available here; use "
+                         "--device auto or cpu")
+    return name
+
+
+def cpu_has_fast_bf16() -> bool:
+    """True on x86 CPUs with AMX-BF16 or AVX512-BF16 (read from /proc/cpuinfo)."""
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return "amx_bf16" in flags or "avx512_bf16" in flags
+
+
+def resolve_precision(precision: str, device: str) -> str:
+    """`fp32` or `bf16` for a concrete `device`; `auto` picks bf16 where it is fast."""
+    import torch
+
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision={precision!r} is invalid; expected one of {PRECISIONS}")
+    if precision != "auto":
+        return precision
+    if device == "cuda":
+        return "bf16" if torch.cuda.is_bf16_supported() else "fp32"
+    if device == "cpu":
+        return "bf16" if cpu_has_fast_bf16() else "fp32"
+    return "fp32"  # mps: bf16 autocast depends on the macOS version; stay safe
+
+
+def cpu_count() -> int:
+    """CPU cores this process may run on (its affinity mask, else the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def eval_policy_threads() -> int:
+    """Torch threads for policy forwards during `eval` on CPU: half the cores, at least one.
+
+    The env workers render on the other half. On 2 cores this is one thread, which keeps a
+    16-episode eval as fast as torch's default (2 threads) on an idle machine and stops it
+    from slowing down 1.5-1.8x when another process takes a core: a 2-thread OpenMP pool waits
+    at every barrier for the thread that lost its core (benchmarks/bench_busy.py). It depends
+    on the machine only, never on the number of envs, so results stay K-independent.
+    """
+    return max(1, cpu_count() // 2)
+
+
+@contextmanager
+def torch_threads(n: int | None) -> Iterator[int | None]:
+    """Run the block with `n` torch CPU threads (None: leave torch alone), then restore.
+
+    Does nothing unless torch is already imported: a policy that never loaded torch (the
+    expert) must not pay for importing it.
+    """
+    torch = sys.modules.get("torch")
+    if n is None or torch is None:
+        yield None
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield n
+    finally:
+        torch.set_num_threads(before)

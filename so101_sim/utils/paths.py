@@ -1,0 +1,42 @@
+"""Where the package's data folders (assets/, envs/, policy/) live.
+
+In a source checkout they sit next to the package; in a wheel they are shipped inside it
+(see `[tool.hatch.build.targets.wheel.force-include]` in pyproject.toml).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+PACKAGE_DIR = Path(__file__).resolve().parent.parent  # so101_sim/
+
+
+def data_dir(name: str) -> Path:
+    """Return the folder `name` ("assets", "envs" or "policy"), installed or from the repo."""
+    for candidate in (PACKAGE_DIR / name, PACKAGE_DIR.parent / name):
+        if candidate.is_dir():
+            return candidate
+    raise FileNotFoundError(
+        f"so101_sim data folder {name!r} not found next to {PACKAGE_DIR} or inside it; "
+        "the installation is incomplete: reinstall so101-sim (pip install --force-reinstall)."
+    )
+
+
+def assets_dir() -> Path:
+    return data_dir("assets")
+
+
+def envs_dir() -> Path:
+    return data_dir("envs")
+
+
+def policy_dir() -> Path:
+    return data_dir("policy")
+
+
+SHIPPED_POLICY = "pick_place_diffusion"
+
+
+def shipped_policy_dir() -> Path:
+    """The trained checkpoint shipped in the repo (policy/pick_place_diffusion)."""
+    return policy_dir() / SHIPPED_POLICY
