@@ -24,11 +24,13 @@ Halving the drop roughly quadruples N. With fewer episodes the test still never 
 policy at its baseline more often than alpha; it just misses smaller drops.
 
 The paired form, ``assert_not_worse(candidate, baseline_run)``, reruns the seeds of a recorded
-``so101-sim eval`` folder and fails only on a significant drop seed by seed (one-sided exact
-McNemar). It needs no well-measured baseline rate, and it needs fewer episodes than the
-one-sample test whenever that test's baseline is itself measured on N seeds; against a
-baseline known exactly it wins only when the policies disagree on few seeds beyond the lost
-ones (README, "Comparing two policies"; ``so101_sim.harness.stats.paired_episodes_needed``).
+``so101-sim eval`` folder in order and fails only on a significant drop seed by seed: an
+anytime-valid sequential test stops it as soon as the answer is known, and the one-sided exact
+McNemar test decides if every seed ran undecided. It needs no well-measured baseline rate,
+and it needs fewer episodes than the one-sample test whenever that test's baseline is itself
+measured on N seeds; against a baseline known exactly it wins only when the policies disagree
+on few seeds beyond the lost ones (README, "Comparing two policies";
+``so101_sim.harness.stats.paired_episodes_needed``).
 """
 
 from __future__ import annotations
@@ -110,52 +112,69 @@ class PairedCheck:
 
     comparison: dict[str, Any]  # so101_sim.harness.compare's result, A = candidate
     alpha: float
-    p_value: float  # one-sided exact McNemar, H1 "the candidate is worse"
+    p_value: float  # one-sided exact McNemar on the seeds run, H1 "the candidate is worse"
+    sequential: dict[str, Any] | None = None  # the sequential verdict (harness.sequential)
 
     @property
     def passed(self) -> bool:
-        return self.p_value >= self.alpha
+        verdict = (self.sequential or {}).get("verdict", "undecided")
+        if verdict != "undecided":
+            return verdict == "not worse"
+        return self.p_value >= self.alpha / 2  # every seed ran: the fixed test's half of alpha
 
     def line(self) -> str:
         r, p = self.comparison, self.comparison["paired"]
         lo, hi = r["difference_ci95_pp"]
         verdict = "OK" if self.passed else "SIGNIFICANTLY WORSE THAN BASELINE"
+        seq = ""
+        if self.sequential is not None:
+            seq = (f"sequential test: {self.sequential['verdict']} after "
+                   f"{self.sequential['episodes']} episodes; ")
         return (f"candidate {r['a']['n_success']}/{r['n_seeds']} vs baseline "
                 f"{r['b']['n_success']}/{r['n_seeds']} on the same seeds (only candidate "
                 f"{p['only_a']}, only baseline {p['only_b']}); difference "
-                f"{r['difference_pp']:+.1f} points (95% CI {lo:+.1f} to {hi:+.1f}); one-sided "
-                f"exact McNemar p = {self.p_value:.4g} (alpha {self.alpha}): {verdict}")
+                f"{r['difference_pp']:+.1f} points (95% CI {lo:+.1f} to {hi:+.1f}); {seq}"
+                f"one-sided exact McNemar p = {self.p_value:.4g} (alpha {self.alpha}): "
+                f"{verdict}")
 
 
 def assert_not_worse(candidate: Any, baseline_run: str | Path, *, alpha: float = 0.01,
                      task: str | Path | None = None, n_envs: int = 2,
                      out_dir: str | Path | None = None, **evaluate_kwargs: Any) -> PairedCheck:
-    """Evaluate `candidate` on exactly the seeds and task of `baseline_run` (an ``so101-sim
-    eval`` folder) and fail the calling test only if it is significantly worse seed by seed:
-    the one-sided exact McNemar test at `alpha`. `task` defaults to the baseline's task name
-    (pass the .toml path if the baseline ran a task file outside envs/)."""
-    from so101_sim.harness import evaluate
+    """Evaluate `candidate` on the seeds and task of `baseline_run` (an ``so101-sim eval``
+    folder), in order, and fail the calling test only if it is worse seed by seed.
+
+    The seeds run under the anytime-valid sequential paired test of ``harness.sequential`` at
+    alpha / 2, which stops as soon as it can say "worse" (fail) or "not worse" (pass); if it
+    is still undecided after every seed, the one-sided exact McNemar test on all of them
+    decides at the other alpha / 2. A candidate as good as the baseline fails with
+    probability at most `alpha` in all. `task` defaults to the baseline's task name (pass the
+    .toml path if the baseline ran a task file outside envs/).
+    """
+    import dataclasses
+
+    from so101_sim.harness.against import evaluate_against
     from so101_sim.harness.compare import check_comparable, load_run, paired_result
     from so101_sim.harness.stats import mcnemar_p_value
 
     if not 0.0 < alpha < 0.5:
         raise ValueError(f"alpha={alpha} is invalid; expected a small level such as 0.01")
     base = load_run(baseline_run)
-    seeds = sorted(base.success)
-    if seeds != list(range(seeds[0], seeds[0] + len(seeds))):
-        raise ValueError(f"{baseline_run} holds non-consecutive seeds; expected a finished "
-                         "`so101-sim eval` run (seeds seed_start..seed_start+episodes-1)")
-    evaluate_kwargs = {"videos": 0, "progress": False, "report": False,
-                       "allow_train_seeds": seeds[0] < EVAL_SEED_START, **evaluate_kwargs}
+    evaluate_kwargs = {"videos": 0, "progress": False, "report": False, **evaluate_kwargs}
     with tempfile.TemporaryDirectory(prefix="so101_paired_") as tmp:
         out = Path(out_dir) if out_dir else Path(tmp) / "eval"
-        evaluate(candidate, task=task or base.task, episodes=len(seeds), n_envs=n_envs,
-                 seed_start=seeds[0], out_dir=out, log=lambda _: None, **evaluate_kwargs)
+        result = evaluate_against(candidate, baseline_run, alpha=alpha / 2, task=task,
+                                  n_envs=n_envs, out_dir=out, log=lambda _: None,
+                                  **evaluate_kwargs)
         cand = load_run(out)
+    ran = sorted(cand.success)
+    base = dataclasses.replace(base, success={s: base.success[s] for s in ran},
+                               actions_sha={s: base.actions_sha.get(s) for s in ran})
     check_comparable(cand, base)
     r = paired_result(cand, base)
     check = PairedCheck(r, alpha, mcnemar_p_value(r["paired"]["only_a"], r["paired"]["only_b"],
-                                                  alternative="less"))
+                                                  alternative="less"),
+                        result["sequential_verdict"])
     print(f"{cand.policy} vs baseline {base.policy} ({baseline_run}) on {base.task}: "
           f"{check.line()}")
     if not check.passed:

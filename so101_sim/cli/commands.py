@@ -91,13 +91,23 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
             evaluate_suite_from_args(args, options)
             return 0
+        common = {"n_envs": args.n_envs, "out_dir": args.out, "videos": args.videos,
+                  "image_size": args.image_size, "resume": args.resume,
+                  "backend": args.backend, "ray_address": args.ray_address,
+                  "save_rollouts": args.save_rollouts, "threads": args.threads,
+                  "faithful": args.faithful}
+        if args.against:
+            from so101_sim.harness.against import evaluate_against
+            from so101_sim.harness.compare import load_run
+
+            task = load_run(args.against).task
+            evaluate_against(load_policy(args.policy, task=task, **options), args.against,
+                             margin=args.margin, indifference=args.indifference,
+                             alpha=args.alpha, max_episodes=args.max_episodes, **common)
+            return 0
         policy = load_policy(args.policy, task=args.task, **options)
-        evaluate(policy, task=args.task, episodes=args.episodes, n_envs=args.n_envs,
-                 seed_start=args.seed_start, out_dir=args.out, videos=args.videos,
-                 image_size=args.image_size, resume=args.resume,
-                 allow_train_seeds=args.allow_train_seeds, backend=args.backend,
-                 ray_address=args.ray_address, save_rollouts=args.save_rollouts,
-                 threads=args.threads)
+        evaluate(policy, task=args.task, episodes=args.episodes, seed_start=args.seed_start,
+                 allow_train_seeds=args.allow_train_seeds, **common)
     except KeyboardInterrupt:
         saved = " and --save-rollouts" if args.save_rollouts else ""
         print(f"so101-sim eval: interrupted; every finished episode is in episodes.jsonl{saved} "

@@ -173,9 +173,26 @@ def build_parser() -> argparse.ArgumentParser:
                     help="output folder (default outputs/eval/<policy>-<task>-<time>)")
     ev.add_argument("--videos", type=int, default=2, help="mp4s of the first V episodes")
     ev.add_argument("--image-size", type=parse_image_size, default=None,
-                    help="render size HEIGHTxWIDTH (default: the checkpoint's training data size "
-                         "from so101_sim_train.json, then resized like training; the policy's "
-                         "input size renders directly, faster)")
+                    help="render size HEIGHTxWIDTH (default: the smallest size whose frames, "
+                         "resized like training, match the faithful ones within a tolerance "
+                         "checked at start; the policy's input size renders directly)")
+    ev.add_argument("--faithful", action="store_true",
+                    help="render at the training data's size (so101_sim_train.json) and resize "
+                         "like training did: exactly what the policy was trained on, slower")
+    ev.add_argument("--against", default=None, metavar="RUN",
+                    help="an earlier `so101-sim eval --out` folder: run its seeds in order and "
+                         "stop as soon as a sequential paired test decides 'worse' or 'not "
+                         "worse' (anytime-valid; --episodes and --seed-start come from RUN)")
+    ev.add_argument("--margin", type=float, default=0.0, metavar="M",
+                    help="with --against: 'worse' means below RUN's rate by more than M "
+                         "(a fraction, default 0)")
+    ev.add_argument("--indifference", type=float, default=0.10, metavar="D",
+                    help="with --against: 'not worse' rules out a drop of M + D or more "
+                         "(default 0.10, the regression the check is sized for)")
+    ev.add_argument("--alpha", type=float, default=0.05,
+                    help="with --against: each wrong verdict's probability bound (default 0.05)")
+    ev.add_argument("--max-episodes", type=int, default=None, metavar="N",
+                    help="with --against: stop 'undecided' after N seeds (default: all of RUN's)")
     ev.add_argument("--resume", action="store_true",
                     help="finish an interrupted evaluation in --out")
     ev.add_argument("--n-action-steps", type=int, default=None,

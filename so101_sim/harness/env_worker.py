@@ -33,6 +33,7 @@ class EnvWorkerConfig:
     env_state: bool  # include environment_state in the policy's observations
     n_obs_steps: int
     rollout: TapeSpec | None = None  # tape every episode (eval --save-rollouts)
+    mesh_width: int | None = None  # mesh detail of this image width (default render width)
 
     def __call__(self) -> EnvWorker:
         """Build the worker's env (and its GL context) where this is called."""
@@ -47,7 +48,7 @@ class EnvWorker:
 
         self.cfg = cfg
         self.env = PickPlaceEnv(task=cfg.task, obs_type="state", image_size=cfg.render_size,
-                                render_mode="rgb_array")
+                                render_mode="rgb_array", mesh_width=cfg.mesh_width)
         self.video: Any = None
         self.steps = 0
         self.digest = hashlib.sha256()

@@ -28,54 +28,12 @@ import numpy as np
 
 from so101_sim.dataset import EVAL_SEED_START
 from so101_sim.harness.env_worker import EnvWorkerConfig
-from so101_sim.harness.policies import ChunkRequest, EvalPolicy, PolicyInfo, load_policy
+from so101_sim.harness.frames import Rendering, choose_rendering, to_policy_obs
+from so101_sim.harness.policies import ChunkRequest, EvalPolicy, load_policy
 from so101_sim.harness.results import EpisodeRecord, RunDir, aggregate, per_episode
 from so101_sim.tasks import TaskSpec, load_task, task_ref
 from so101_sim.utils.devices import eval_policy_threads, torch_threads
 from so101_sim.workers import PoolInfo, Reply, check_backend, start_pool
-
-VIDEO_ONLY_SIZE = (240, 320)  # render size for videos of policies that use no cameras
-
-
-@dataclass
-class Rendering:
-    """How camera frames reach the policy; ``label`` goes into the summary and report."""
-
-    render_size: tuple[int, int]
-    input_size: tuple[int, int] | None
-    label: str
-
-    @property
-    def resize(self) -> bool:
-        return self.input_size is not None and self.render_size != self.input_size
-
-
-def choose_rendering(info: PolicyInfo, image_size: tuple[int, int] | None) -> Rendering:
-    """Default: render at the training data's size and resize like training did (faithful);
-    ``image_size`` equal to the policy's input size renders there directly (fast)."""
-    if not info.cameras:
-        size = tuple(image_size) if image_size else VIDEO_ONLY_SIZE
-        return Rendering(size, None, f"no camera input (state only); videos rendered at "
-                                     f"{_hw(size)}")
-    inp = tuple(info.image_size)
-    size = tuple(image_size) if image_size else tuple(info.train_image_size or inp)
-    if size == inp:
-        label = f"direct: rendered at the policy's input size {_hw(inp)}, no resize"
-        if info.train_image_size and tuple(info.train_image_size) != inp:
-            label += (f" (training frames were recorded at {_hw(info.train_image_size)} and "
-                      "resized: fast path, not the faithful one)")
-        return Rendering(size, inp, label)
-    label = f"resized: rendered at {_hw(size)}, resize_frames to {_hw(inp)}"
-    if info.train_image_size and tuple(info.train_image_size) == size:
-        label = f"faithful: rendered at the training data's {_hw(size)}, resize_frames to " \
-                f"{_hw(inp)}"
-    elif info.train_image_size:
-        label += f" (training data was recorded at {_hw(info.train_image_size)})"
-    return Rendering(size, inp, label)
-
-
-def _hw(size: Any) -> str:
-    return f"{size[0]}x{size[1]}"
 
 
 @dataclass
@@ -102,8 +60,8 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
              max_retries: int = 2, progress: bool = True, report: bool = True,
              backend: str = "local", ray_address: str | None = None,
              save_rollouts: str | Path | None = None, checkpoint_every: int = 50,
-             threads: int | None = None, log: Callable[[str], None] = print
-             ) -> dict[str, Any]:
+             threads: int | None = None, faithful: bool = False, stop: Any = None,
+             log: Callable[[str], None] = print) -> dict[str, Any]:
     """Evaluate `policy` on `episodes` seeds from `seed_start`; return the eval_info dict.
 
     `policy` is an ``EvalPolicy``, ``"expert"`` or a lerobot checkpoint directory. Writes
@@ -117,6 +75,9 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
     every step is then rendered, so the run is slower, but its results are the same.
     `threads`: torch CPU threads for the policy's forwards while it runs (restored after);
     None: ``devices.eval_policy_threads()``, half the cores (one on 2 cores).
+    `faithful`: render at the training data's size (else the smallest size that passes the
+    self-check in ``harness.frames``). `stop`: an object with ``update(done) -> bool``,
+    asked after every finished episode, and ``to_info()`` (``harness.against``).
     """
     spec = load_task(task)  # parsed once here; the spec travels to the workers
     if not isinstance(policy, EvalPolicy):
@@ -124,7 +85,11 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
     _check_args(episodes, n_envs, seed_start, videos, allow_train_seeds)
     check_backend(backend, ray_address)
     info = policy.info
-    rendering = choose_rendering(info, image_size)
+    if info.cameras and not faithful and not image_size:
+        from so101_sim.sim.rendering import select_gl_backend
+
+        select_gl_backend()  # the self-check renders here, before the workers exist
+    rendering = choose_rendering(info, image_size, task=spec, faithful=faithful, log=log)
     if info.camera_map:  # inputs named after another rig: say which env camera feeds which
         from so101_sim.harness.camera_map import describe_camera_map
 
@@ -139,7 +104,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
             {k: v for k, v in spec.to_dict().items() if k != "source"}, sort_keys=True,
             default=list).encode()).hexdigest(),
         "seed_start": seed_start, "episodes": episodes,
-        "render_size": list(rendering.render_size),
+        "render_size": list(rendering.render_size), "mesh_width": rendering.mesh_width,
         "policy_image_size": list(rendering.input_size) if rendering.input_size else None,
     }
     if save_rollouts is not None:  # absolute: a resume from another folder still matches
@@ -174,7 +139,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
             with torch_threads(threads or eval_policy_threads()):
                 n_run, workers = _run(policy, run, spec, rendering, todo, done, seed_start,
                                       episodes, n_envs, videos, worker_timeout_s, max_retries,
-                                      progress, backend, ray_address, reruns, log, sink)
+                                      progress, backend, ray_address, reruns, log, sink, stop)
         finished = True
     finally:
         if sink is not None:
@@ -188,8 +153,11 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
         "aggregated": aggregated,
         "config": {**identity, "n_envs": n_envs, "images": rendering.label,
                    "policy_details": info.details, "workers": workers.to_dict(),
-                   "reruns": reruns, "video_paths": [r.video for r in records if r.video]},
+                   "reruns": reruns, "video_paths": [r.video for r in records if r.video],
+                   **({"image_check": rendering.check} if rendering.check else {})},
     }
+    if stop is not None:
+        result["sequential_verdict"] = stop.to_info()
     result["summary"] = summary_line(info.name, spec.name, aggregated, run.path,
                                      images=rendering.label)
     run.write_info(result)
@@ -249,7 +217,8 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
          done: dict[int, EpisodeRecord], seed_start: int, episodes: int, n_envs: int,
          videos: int, worker_timeout_s: float, max_retries: int, progress: bool,
          backend: str, ray_address: str | None, reruns: list[dict[str, Any]],
-         log: Callable[[str], None], sink: Any = None) -> tuple[int, PoolInfo]:
+         log: Callable[[str], None], sink: Any = None, stop: Any = None
+         ) -> tuple[int, PoolInfo]:
     """Run every seed in `todo`; add each finished episode to `done` and to the run folder
     (and, with a rollout `sink`, to its dataset), and each episode that had to be run again
     to `reruns`. Returns (episodes run, workers)."""
@@ -258,7 +227,8 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
     info = policy.info
     cfg = EnvWorkerConfig(task=task, render_size=rendering.render_size, cameras=info.cameras,
                           env_state=info.needs_env_state, n_obs_steps=info.n_obs_steps,
-                          rollout=sink.tape if sink is not None else None)
+                          rollout=sink.tape if sink is not None else None,
+                          mesh_width=rendering.mesh_width)
     failures: Counter[int] = Counter()
     bar = tqdm(total=episodes, initial=len(done), unit="ep", disable=not progress,
                dynamic_ncols=True)
@@ -321,9 +291,14 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                 bar.update(1)
                 rate = 100.0 * sum(e.success for e in done.values()) / len(done)
                 bar.set_postfix_str(f"success {rate:.1f}%")
+                if stop is not None and stop.update(done):
+                    todo.clear()  # decided: episodes still running are dropped
+                    slots[:] = [_Slot() for _ in slots]
+                    waiting.clear()
+                    return
                 continue
             t0 = time.perf_counter()
-            new = [_to_policy_obs(o, rendering) for o in reply["history"]]
+            new = [to_policy_obs(o, rendering) for o in reply["history"]]
             s.policy_s += time.perf_counter() - t0  # image preprocessing counts as policy
             if not s.history:  # episode start: repeat the first observation To times
                 new = new * info.n_obs_steps
@@ -379,14 +354,3 @@ def _save_video(path: str | None, mp4: bytes | None) -> str | None:
     part.replace(final)
     return str(final)
 
-
-def _to_policy_obs(obs: dict[str, Any], rendering: Rendering) -> dict[str, Any]:
-    """Resize a worker's frames to the policy's input size with the training resize."""
-    if "pixels" not in obs or not rendering.resize:
-        return obs
-    from so101_sim.utils.image_pipeline import resize_frames
-
-    cams = list(obs["pixels"])
-    small = resize_frames(np.stack([obs["pixels"][c] for c in cams]), rendering.input_size)
-    hwc = small.permute(0, 2, 3, 1).contiguous().numpy()
-    return {**obs, "pixels": {c: hwc[k] for k, c in enumerate(cams)}}

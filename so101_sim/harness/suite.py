@@ -41,7 +41,7 @@ def evaluate_suite(policy: str, tasks: Sequence[str], *,
                    load_options: dict[str, Any] | None = None,
                    out_dir: str | Path | None = None, log: Callable[[str], None] = print,
                    **evaluate_kwargs: Any) -> dict[str, Any]:
-    """Evaluate `policy` (``"expert"``, a checkpoint directory or ``module:factory``) on each
+    """Evaluate `policy` (``"expert"``, ``"baseline"``, a checkpoint or ``module:factory``) on each
     of `tasks` with the same seeds and settings; returns the suite's eval_info dict.
 
     `load_options` go to ``load_policy``; `evaluate_kwargs` (episodes, n_envs, seed_start,
@@ -54,10 +54,22 @@ def evaluate_suite(policy: str, tasks: Sequence[str], *,
         stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
         out_dir = Path("outputs/eval") / f"{Path(str(policy)).name}-suite-{stamp}"
     out = Path(out_dir)
+    specs = [load_task(task) for task in tasks]
+    if str(policy) == "baseline":  # only the tasks with shipped weights; say which are left out
+        from so101_sim.harness.baselines import baselines
+
+        shipped = {k for k, v in baselines().items() if "checkpoint" in v}
+        left = [s.name for s in specs if s.name not in shipped]
+        specs = [s for s in specs if s.name in shipped]
+        if not specs:
+            raise ValueError(f"--policy baseline: no weights are shipped for {left}; see "
+                             "policy/baselines.toml for each task's card and recipe")
+        if left:
+            log(f"so101-sim eval: --policy baseline: no shipped weights for {left} (cards and "
+                "recipes: policy/baselines.toml); evaluating the others")
     t0 = time.perf_counter()
     results: dict[str, dict[str, Any]] = {}
-    for task in tasks:
-        spec = load_task(task)
+    for spec in specs:
         name = spec.name
         loaded = load_policy(policy, task=spec, **(load_options or {}))
         kwargs = dict(evaluate_kwargs)
@@ -118,7 +130,7 @@ def evaluate_suite_from_args(args: Any, load_options: dict[str, Any]) -> dict[st
     kwargs = {k: getattr(args, k) for k in ("episodes", "n_envs", "seed_start", "videos",
                                             "image_size", "resume", "allow_train_seeds",
                                             "backend", "ray_address", "save_rollouts",
-                                            "threads")
+                                            "threads", "faithful")
               if hasattr(args, k)}
     return evaluate_suite(args.policy, task_list(args.task), load_options=load_options,
                           out_dir=args.out, **kwargs)

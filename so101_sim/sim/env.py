@@ -98,7 +98,8 @@ class SO101Env(gym.Env):
     ``task``: a name in ``envs/`` or a path to a task TOML (or a ``TaskSpec``);
     ``obs_type``: see above; ``image_size``: ``(height, width)`` of each camera;
     ``render_mode``: ``"rgb_array"`` (``render()`` returns the cameras side by side) or None;
-    ``cameras``: names from ``("front", "side", "wrist")``, None for the task's.
+    ``cameras``: names from ``("front", "side", "wrist")``, None for the task's;
+    ``mesh_width``: the image width whose mesh detail to use (default: ``image_size``'s).
 
     ## Version history
     v0: first release; the task suite, wrist camera and domain randomization were added
@@ -111,7 +112,8 @@ class SO101Env(gym.Env):
                  obs_type: str = "pixels_agent_pos",
                  image_size: tuple[int, int] = (480, 640),
                  render_mode: str | None = None,
-                 cameras: Sequence[str] | None = None) -> None:
+                 cameras: Sequence[str] | None = None,
+                 mesh_width: int | None = None) -> None:
         if obs_type not in OBS_TYPES:
             raise ValueError(f"obs_type={obs_type!r} is invalid; expected one of {OBS_TYPES}")
         if render_mode not in (None, "rgb_array"):
@@ -125,7 +127,10 @@ class SO101Env(gym.Env):
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": self.task.fps}
 
-        model, self.visuals = build_model(self.task, mesh_grid_for(self.task, self.image_size[1]))
+        # Mesh detail follows the image width, or `mesh_width`: a smaller render of a scene
+        # recorded at a larger size keeps the geometry the recording (and the policy) saw.
+        width = self.image_size[1] if mesh_width is None else int(mesh_width)
+        model, self.visuals = build_model(self.task, mesh_grid_for(self.task, width))
         self._randomizer = None
         if self.task.randomize is not None:
             from so101_sim.sim.randomizer import DomainRandomizer

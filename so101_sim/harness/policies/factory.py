@@ -22,9 +22,14 @@ def expert_policy(task: str | Path | TaskSpec = "pick_place") -> StepPolicy:
 
 def load_policy(spec: str | Path, task: str | Path | TaskSpec = "pick_place",
                 **lerobot_options: Any) -> EvalPolicy:
-    """``"expert"``, a lerobot checkpoint directory, or ``"package.module:factory"`` (a callable
-    taking ``task`` and returning an ``EvalPolicy``)."""
+    """``"expert"``, ``"baseline"`` (the shipped checkpoint for `task`), a lerobot checkpoint
+    directory, or ``"package.module:factory"`` (a callable taking ``task`` and returning an
+    ``EvalPolicy``)."""
     text = str(spec)
+    if text == "baseline":  # the shipped checkpoint for this task (policy/baselines.toml)
+        from so101_sim.harness.baselines import baseline_checkpoint
+
+        text = str(baseline_checkpoint(load_task(task)))
     if text == "expert":
         if lerobot_options:
             raise ValueError(f"options {sorted(lerobot_options)} apply to lerobot checkpoints, "
@@ -35,7 +40,7 @@ def load_policy(spec: str | Path, task: str | Path | TaskSpec = "pick_place",
         return _load_factory(text, task)
     from so101_sim.harness.policies.lerobot import LeRobotPolicy
 
-    return LeRobotPolicy(path, **lerobot_options)
+    return LeRobotPolicy(path, task_description=load_task(task).description, **lerobot_options)
 
 
 def _load_factory(text: str, task: str | Path | TaskSpec) -> EvalPolicy:

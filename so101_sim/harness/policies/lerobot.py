@@ -19,8 +19,6 @@ position-independent; if it is not, each env gets its own forward.
 
 from __future__ import annotations
 
-import hashlib
-import json
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -34,11 +32,15 @@ import numpy as np
 # thread pool at its barriers (benchmarks/bench_busy.py).
 import torch
 
-from so101_sim.harness.camera_map import describe_camera_map, resolve_camera_map
+from so101_sim.harness.camera_map import (
+    describe_camera_map,
+    resolve_camera_map,
+    shown_camera_map,
+)
+from so101_sim.harness.policies.checks import check_features, fingerprint
 from so101_sim.harness.policies.protocol import ChunkRequest, PolicyInfo
-from so101_sim.sim import CAMERAS, ENV_STATE_SIZE
+from so101_sim.sim import CAMERAS
 from so101_sim.train.checkpoint import (
-    TRAIN_INFO,
     check_files,
     checkpoint_name,
     load_config,
@@ -48,9 +50,6 @@ from so101_sim.train.checkpoint import (
 )
 from so101_sim.utils.trust import check_processor_files
 
-STATE_KEY = "observation.state"
-ENV_STATE_KEY = "observation.environment_state"
-IMAGE_PREFIX = "observation.images."
 #: The project's diffusion setting (DESIGN.md): To=2, Tp=16, Ta=8, DDIM with 10 steps.
 STANDARD_DIFFUSION = {"n_obs_steps": 2, "horizon": 16, "n_action_steps": 8,
                       "noise_scheduler_type": "DDIM", "num_inference_steps": 10}
@@ -64,25 +63,29 @@ class LeRobotPolicy:
     checkpoint's inference settings (with a warning); None keeps the checkpoint's.
     ``batch_size``: rows per forward (see the module docstring); 1 = one forward per env.
     ``camera_map``: policy camera name -> env camera, for checkpoints whose cameras are named
-    after another rig (``so101_sim.harness.camera_map``).
+    after another rig (``so101_sim.harness.camera_map``). ``task_description`` goes into every
+    batch as ``task``, as lerobot-eval passes it (language-conditioned policies read it).
+    ACT with ``temporal_ensemble_coeff`` runs a forward every step, ensembled per env
+    (``harness.policies.ensemble``).
     """
 
     def __init__(self, path: str | Path, *, n_action_steps: int | None = None,
                  num_inference_steps: int | None = None, noise_scheduler: str | None = None,
                  batch_size: int = DEFAULT_BATCH, device: str = "cpu",
-                 camera_map: dict[str, str] | None = None,
+                 camera_map: dict[str, str] | None = None, task_description: str = "",
                  log: Callable[[str], None] = print) -> None:
         self.path = Path(path).expanduser()
+        self.task_text = task_description
         self.log = log
         if batch_size < 1:
             raise ValueError(f"batch_size={batch_size} is invalid; expected >= 1")
         check_files(self.path)
         cfg = load_config(self.path)
-        policy_cams, image_size, self.env_state = _check_features(cfg, self.path)
+        policy_cams, image_size, self.env_state = check_features(cfg, self.path)
         # policy camera name -> env camera that feeds it (--camera-map; identity by default)
         self.camera_map = resolve_camera_map(policy_cams, camera_map, f"checkpoint {self.path}")
         self.cameras = tuple(c for c in CAMERAS if c in self.camera_map.values())
-        renamed = {p: e for p, e in self.camera_map.items() if p != e}
+        renamed = shown_camera_map(self.camera_map)  # renamed, or sharing one env camera
         asked = {"n_action_steps": n_action_steps, "num_inference_steps": num_inference_steps,
                  "noise_scheduler_type": noise_scheduler}
         self.is_diffusion = cfg.type == "diffusion"
@@ -104,7 +107,7 @@ class LeRobotPolicy:
             cameras=self.cameras, needs_env_state=self.env_state, image_size=image_size,
             train_image_size=train_image_size(self.path),
             n_obs_steps=self.n_obs_steps, n_action_steps=self.n_action_steps,
-            fingerprint=_fingerprint(self.path, {**asked, "batch_size": self.batch_size,
+            fingerprint=fingerprint(self.path, {**asked, "batch_size": self.batch_size,
                                                  **({"camera_map": renamed} if renamed else {})}),
             details=self._details(), camera_map=renamed)
 
@@ -154,12 +157,14 @@ class LeRobotPolicy:
         elif n_obs != 1:
             raise ValueError(f"{cfg.type!r} policy with n_obs_steps={n_obs} is not supported: "
                              "the harness feeds observation histories to diffusion policies only")
-        if getattr(cfg, "temporal_ensemble_coeff", None) is not None:
-            raise ValueError(f"{self.path} uses ACT temporal ensembling, which needs a forward "
-                             "every step with state across steps; set temporal_ensemble_coeff="
-                             "null in config.json to evaluate it chunk-wise")
+        self.ensemble = None
+        coeff = getattr(cfg, "temporal_ensemble_coeff", None)
+        if coeff is not None:  # a forward every step, averaged over the chunks so far
+            from so101_sim.harness.policies.ensemble import SlotEnsemblers
+
+            self.ensemble = SlotEnsemblers(coeff, cfg.chunk_size)
         self.n_obs_steps = n_obs
-        self.n_action_steps = int(getattr(cfg, "n_action_steps", 1))
+        self.n_action_steps = 1 if coeff is not None else int(getattr(cfg, "n_action_steps", 1))
 
     def _details(self) -> dict[str, str]:
         cfg = self.cfg
@@ -179,6 +184,8 @@ class LeRobotPolicy:
     # --------------------------------------------------------------------- EvalPolicy
     def start_episode(self, slot: int, seed: int) -> None:
         self._gens[slot] = torch.Generator().manual_seed(int(seed))
+        if self.ensemble is not None:
+            self.ensemble.start(slot)
 
     def predict_chunks(self, requests: Sequence[ChunkRequest]) -> np.ndarray:
         out = []
@@ -191,7 +198,12 @@ class LeRobotPolicy:
             if self.is_diffusion:
                 drawn = [self._draw_noise(r.slot) for r in group]
                 noise = torch.stack(drawn + [drawn[0]] * pad)
-            actions = self._predict(batch, noise)
+            if self.ensemble is not None:
+                chunks = self._predict_raw(batch, None)[:len(group)]
+                actions = self.post(self.ensemble.step([r.slot for r in group], chunks))
+                actions = actions.to("cpu", torch.float32)
+            else:
+                actions = self._predict(batch, noise)
             out.append(actions[:len(group)].numpy().astype(np.float32))
         return np.concatenate(out)
 
@@ -214,92 +226,50 @@ class LeRobotPolicy:
             if self.env_state:
                 env_batch["environment_state"] = np.stack(
                     [o["environment_state"] for o in obs])
-            steps.append(self.pre(preprocess_observation(env_batch)))
+            obs = preprocess_observation(env_batch)
+            obs["task"] = [self.task_text] * len(rows)  # as lerobot-eval passes it
+            steps.append(self.pre(obs))
         keys = [k for k in self.cfg.input_features if k in steps[0]]
         if not self.is_diffusion:
-            return {k: steps[0][k] for k in keys}
+            batch = {k: steps[0][k] for k in keys}
+            if "task" in steps[0]:
+                batch["task"] = steps[0]["task"]
+            return batch
         return {k: torch.stack([s[k] for s in steps], dim=1) for k in keys}
 
     @torch.no_grad()
-    def _predict(self, batch: dict[str, torch.Tensor],
-                 noise: torch.Tensor | None) -> torch.Tensor:
+    def _predict_raw(self, batch: dict[str, Any], noise: torch.Tensor | None) -> torch.Tensor:
+        """The policy's whole chunk, normalised (before the postprocessor)."""
         if self.is_diffusion:
             noise = None if noise is None else noise.to(self.cfg.device)
-            actions = self.policy.predict_action_chunk(batch, noise=noise)
-        else:
-            actions = self.policy.predict_action_chunk(batch)[:, :self.n_action_steps]
+            return self.policy.predict_action_chunk(batch, noise=noise)
+        return self.policy.predict_action_chunk(batch)
+
+    @torch.no_grad()
+    def _predict(self, batch: dict[str, Any], noise: torch.Tensor | None) -> torch.Tensor:
+        actions = self._predict_raw(batch, noise)
+        if not self.is_diffusion:
+            actions = actions[:, :self.n_action_steps]
         return self.post(actions).to("cpu", torch.float32)
 
     def _batching_is_row_independent(self) -> bool:
         """Do rows come out bitwise the same whatever their position and batch mates?"""
         gen = torch.Generator().manual_seed(0)
-        batch: dict[str, torch.Tensor] = {}
+        batch: dict[str, Any] = {}
         lead = (self.batch_size, self.n_obs_steps) if self.is_diffusion else (self.batch_size,)
         for key, ft in self.cfg.input_features.items():
             batch[key] = torch.rand((*lead, *ft.shape), generator=gen).to(self.cfg.device)
         noise = None
+        if not self.is_diffusion:
+            batch["task"] = [self.task_text] * self.batch_size
         if self.is_diffusion:
             noise = torch.randn((self.batch_size, self.cfg.horizon,
                                  self.cfg.output_features["action"].shape[0]), generator=gen)
         first = self._predict(batch, noise)
         order = torch.roll(torch.arange(self.batch_size), 1)
-        second = self._predict({k: v[order] for k, v in batch.items()},
+        second = self._predict({k: v if k == "task" else v[order] for k, v in batch.items()},
                                None if noise is None else noise[order])
         return torch.equal(first[order], second)
 
 
 # ------------------------------------------------------------------------ loading helpers
-
-def _check_features(cfg: Any, path: Path) -> tuple[tuple[str, ...], Any, bool]:
-    """The camera names, image size and env-state use the checkpoint expects; errors if the
-    env cannot provide them (camera names are matched to env cameras by the caller)."""
-    where = f"checkpoint {path}"
-    cams: list[str] = []
-    sizes: set[tuple[int, int]] = set()
-    env_state = False
-    expected = (f"expected {STATE_KEY} (6,), {IMAGE_PREFIX}<camera> (3, H, W) for cameras "
-                f"{list(CAMERAS)}, and optionally {ENV_STATE_KEY} ({ENV_STATE_SIZE},)")
-    for key, ft in cfg.input_features.items():
-        shape = tuple(ft.shape)
-        if key == STATE_KEY:
-            if shape != (6,):
-                raise ValueError(f"{where} expects {key} of shape {shape}; the env's agent_pos "
-                                 "is (6,) (5 joints in degrees + gripper 0..100)")
-        elif key == ENV_STATE_KEY:
-            if shape != (ENV_STATE_SIZE,):
-                raise ValueError(f"{where} expects {key} of shape {shape}; the env's "
-                                 f"environment_state is ({ENV_STATE_SIZE},)")
-            env_state = True
-        elif key.startswith(IMAGE_PREFIX):
-            cam = key[len(IMAGE_PREFIX):]  # env cameras are matched by resolve_camera_map
-            if len(shape) != 3 or shape[0] != 3:
-                raise ValueError(f"{where} expects {key} of shape {shape}; {expected}")
-            cams.append(cam)
-            sizes.add((int(shape[1]), int(shape[2])))
-        else:
-            raise ValueError(f"{where} expects input {key!r}, which the env does not provide; "
-                             f"{expected}")
-    if len(sizes) > 1:
-        raise ValueError(f"{where} expects cameras at different sizes {sorted(sizes)}; the "
-                         "harness renders both cameras at one size")
-    action = cfg.output_features.get("action")
-    if action is None or tuple(action.shape) != (6,):
-        raise ValueError(f"{where} outputs action of shape "
-                         f"{None if action is None else tuple(action.shape)}; the env takes "
-                         "(6,) absolute joint targets in LeRobot units")
-    return tuple(cams), (sizes.pop() if sizes else None), env_state
-
-
-def _fingerprint(path: Path, settings: dict[str, Any]) -> str:
-    """sha256 over the weights, config and processors, plus the inference settings (batch
-    size included: results are bitwise reproducible for a fixed one)."""
-    h = hashlib.sha256()
-    for f in sorted(path.iterdir()):
-        if f.is_file() and (f.name in ("config.json", "model.safetensors", TRAIN_INFO)
-                            or f.name.startswith(("policy_preprocessor", "policy_postprocessor"))):
-            h.update(f.name.encode())
-            with f.open("rb") as fh:
-                for block in iter(lambda: fh.read(1 << 20), b""):
-                    h.update(block)
-    h.update(json.dumps(settings, sort_keys=True).encode())
-    return h.hexdigest()[:16]

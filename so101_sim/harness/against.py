@@ -1,0 +1,79 @@
+"""``so101-sim eval --against RUN``: rerun an earlier run's seeds in order, stop once decided.
+
+Each finished episode is paired with RUN's outcome on the same seed and fed, in seed order, to
+the anytime-valid sequential test of ``harness.sequential``. Episodes finish out of order on
+several workers, so the test only ever sees the consecutive prefix of seeds from the first
+one: the stopping rule depends on outcomes alone, never on which worker was faster. When it
+decides, the run stops (episodes still running are dropped) and ``eval_info.json`` gets a
+``sequential_verdict`` (verdict, episodes used, the statistic).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+from so101_sim.dataset import EVAL_SEED_START
+from so101_sim.harness.compare import RunSide, load_run, seed_ranges
+from so101_sim.harness.sequential import SequentialPairedTest, Verdict
+
+
+class AgainstRun:
+    """The ``stop`` hook of ``evaluate``: pairs finished episodes with RUN's, in seed order."""
+
+    def __init__(self, reference: RunSide, margin: float = 0.0, indifference: float = 0.10,
+                 alpha: float = 0.05, max_episodes: int | None = None) -> None:
+        seeds = sorted(reference.success)
+        if not seeds:
+            raise ValueError(f"--against {reference.path}: the run holds no episodes")
+        if seeds != list(range(seeds[0], seeds[0] + len(seeds))):
+            raise ValueError(f"--against {reference.path}: its seeds are not consecutive "
+                             f"({seed_ranges(seeds)}); expected one finished `so101-sim eval` "
+                             "run")
+        self.reference = reference
+        self.seeds = seeds if max_episodes is None else seeds[:max_episodes]
+        self.test = SequentialPairedTest(margin, indifference, alpha,
+                                         max_episodes=len(self.seeds))
+        self.result: Verdict | None = None
+        self._next = 0  # index into self.seeds of the next pair the test has not seen
+
+    def update(self, done: Mapping[int, Any]) -> bool:
+        """Feed every newly available consecutive pair; True once the test has decided."""
+        while self.result is None and self._next < len(self.seeds):
+            seed = self.seeds[self._next]
+            if seed not in done:
+                break
+            self._next += 1
+            verdict = self.test.update(self.reference.success[seed], bool(done[seed].success))
+            if verdict is not None:
+                self.result = verdict
+        return self.result is not None and self.result.verdict != "undecided"
+
+    def verdict(self) -> Verdict:
+        return self.result or self.test.verdict()
+
+    def to_info(self) -> dict[str, Any]:
+        return {**self.verdict().to_dict(), "against": str(self.reference.path),
+                "reference_policy": self.reference.policy}
+
+
+def evaluate_against(policy: Any, run: str | Path, *, margin: float = 0.0,
+                     indifference: float = 0.10, alpha: float = 0.05,
+                     max_episodes: int | None = None, task: Any = None,
+                     log: Callable[[str], None] = print, **evaluate_kwargs: Any
+                     ) -> dict[str, Any]:
+    """Evaluate `policy` on RUN's seeds (its task unless `task`) until the paired sequential
+    test decides; returns the eval_info dict with ``sequential_verdict``."""
+    from so101_sim.harness.runner import evaluate
+
+    reference = load_run(run)
+    stop = AgainstRun(reference, margin, indifference, alpha, max_episodes)
+    for key in ("episodes", "seed_start"):
+        if key in evaluate_kwargs:
+            raise ValueError(f"--against takes its seeds from {run}; drop {key}")
+    evaluate_kwargs.setdefault("allow_train_seeds", stop.seeds[0] < EVAL_SEED_START)
+    result = evaluate(policy, task=task or reference.task, episodes=len(stop.seeds),
+                      seed_start=stop.seeds[0], stop=stop, log=log, **evaluate_kwargs)
+    log(f"so101-sim eval: {stop.verdict().line()} against {run}")
+    return result

@@ -1,0 +1,167 @@
+"""How camera frames reach the policy: what size to render at, and the resize to its input.
+
+A checkpoint trained here records the size its demos were rendered at (``train_image_size``)
+and its input size (``image_size``, e.g. 60x80). Rendering at the recorded size and resizing
+like training did is the *faithful* path (``--faithful``). Rendering costs pixels on a CPU, and
+a 480x640 frame shrunk to 60x80 keeps little of them, so by default ``choose_rendering`` takes
+the smallest size of ``input x 2^k`` whose resized frames match the faithful ones within
+``TOLERANCE`` on a few reset frames of the run's own task and cameras (a self-check that costs
+about a second), and says so in one line. The scene keeps the mesh detail of the recorded
+width (``SO101Env(mesh_width=...)``), so the smaller render shows the policy the same geometry.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from so101_sim.harness.policies import PolicyInfo
+from so101_sim.tasks import TaskSpec
+
+VIDEO_ONLY_SIZE = (240, 320)  # render size for videos of policies that use no cameras
+#: The default's acceptance rule, in grey levels (0..255) of the policy-size frames: mean and
+#: 99th percentile of |reduced - faithful|. On the pick_place reset frame a 240x320 render
+#: differs from the 480x640 one by 0.25 / 6, a 120x160 one by 0.86 / 14 (DESIGN 12).
+TOLERANCE = {"mean": 0.5, "p99": 8.0}
+CHECK_SEEDS = (100_000, 100_001, 100_002, 100_003)  # reset frames compared by the self-check
+
+
+@dataclass
+class Rendering:
+    """How camera frames reach the policy; ``label`` goes into the summary and report."""
+
+    render_size: tuple[int, int]
+    input_size: tuple[int, int] | None
+    label: str
+    mesh_width: int | None = None  # mesh detail of this image width (None: the render's)
+    check: dict[str, Any] = field(default_factory=dict)  # the self-check's numbers, if any
+
+    @property
+    def resize(self) -> bool:
+        return self.input_size is not None and self.render_size != self.input_size
+
+
+def choose_rendering(info: PolicyInfo, image_size: tuple[int, int] | None,
+                     task: TaskSpec | None = None, faithful: bool = True,
+                     log: Callable[[str], None] = print) -> Rendering:
+    """Explicit `image_size` wins; else faithful (`faithful`, or no `task` to check on), else
+    the smallest render that passes the self-check against the faithful one."""
+    if not info.cameras:
+        size = tuple(image_size) if image_size else VIDEO_ONLY_SIZE
+        return Rendering(size, None, f"no camera input (state only); videos rendered at "
+                                     f"{_hw(size)}")
+    inp = tuple(info.image_size)
+    if image_size:
+        return _fixed(info, tuple(image_size), inp)
+    recorded = tuple(info.train_image_size or inp)
+    candidates = _candidates(inp, recorded)
+    if faithful or task is None or not candidates:
+        return _fixed(info, recorded, inp)
+    try:
+        chosen, check = _self_check(task, info.cameras, recorded, inp, candidates)
+    except Exception as exc:  # no GL in this process, say: the faithful path always works
+        log(f"so101-sim eval: images: the render-size self-check failed "
+            f"({type(exc).__name__}: {str(exc)[:120]}); rendering faithfully at {_hw(recorded)}")
+        return _fixed(info, recorded, inp)
+    if chosen is None:
+        log(f"so101-sim eval: images: no smaller render matches the faithful {_hw(recorded)} "
+            f"within the tolerance (smallest difference: {_stats(check['tried'][-1])}); "
+            "rendering faithfully")
+        return Rendering(recorded, inp, _fixed(info, recorded, inp).label, check=check)
+    stats = _stats(check["tried"][-1])
+    label = (f"reduced: rendered at {_hw(chosen)} (mesh detail of the recorded {recorded[1]} "
+             f"px width), resize_frames to {_hw(inp)}; vs the faithful {_hw(recorded)}: "
+             f"{stats}")
+    log(f"so101-sim eval: images: rendering at {_hw(chosen)} instead of the recorded "
+        f"{_hw(recorded)} ({stats} after resizing to {_hw(inp)}; tolerance mean "
+        f"{TOLERANCE['mean']}, p99 {TOLERANCE['p99']}); --faithful renders at {_hw(recorded)}")
+    return Rendering(chosen, inp, label, mesh_width=recorded[1], check=check)
+
+
+def _fixed(info: PolicyInfo, size: tuple[int, int], inp: tuple[int, int]) -> Rendering:
+    if size == inp:
+        label = f"direct: rendered at the policy's input size {_hw(inp)}, no resize"
+        if info.train_image_size and tuple(info.train_image_size) != inp:
+            label += (f" (training frames were recorded at {_hw(info.train_image_size)} and "
+                      "resized: fast path, not the faithful one)")
+        return Rendering(size, inp, label)
+    label = f"resized: rendered at {_hw(size)}, resize_frames to {_hw(inp)}"
+    if info.train_image_size and tuple(info.train_image_size) == size:
+        label = f"faithful: rendered at the training data's {_hw(size)}, resize_frames to " \
+                f"{_hw(inp)}"
+    elif info.train_image_size:
+        label += f" (training data was recorded at {_hw(info.train_image_size)})"
+    return Rendering(size, inp, label)
+
+
+def _candidates(inp: tuple[int, int], recorded: tuple[int, int]) -> list[tuple[int, int]]:
+    """input x 1, 2, 4, ... below the recorded size, smallest first (same aspect only)."""
+    if recorded[0] * inp[1] != recorded[1] * inp[0]:
+        return []
+    out, k = [], 1
+    while inp[0] * k < recorded[0]:
+        out.append((inp[0] * k, inp[1] * k))
+        k *= 2
+    return out
+
+
+def _frames(task: TaskSpec, cameras: tuple[str, ...], size: tuple[int, int],
+            mesh_width: int, input_size: tuple[int, int]) -> np.ndarray:
+    """Reset frames of CHECK_SEEDS, every camera, resized to the policy's input (uint8)."""
+    from so101_sim.sim import SO101Env
+    from so101_sim.utils.image_pipeline import resize_frames
+
+    env = SO101Env(task, obs_type="state", image_size=size, render_mode="rgb_array",
+                   cameras=cameras, mesh_width=mesh_width)
+    try:
+        shots = []
+        for seed in CHECK_SEEDS:
+            env.reset(seed=seed)
+            frame = env.render()
+            w = size[1]
+            shots += [frame[:, i * w:(i + 1) * w] for i in range(len(cameras))]
+    finally:
+        env.close()
+    return resize_frames(np.stack(shots), input_size).numpy()
+
+
+def _self_check(task: TaskSpec, cameras: tuple[str, ...], recorded: tuple[int, int],
+                inp: tuple[int, int], candidates: list[tuple[int, int]]
+                ) -> tuple[tuple[int, int] | None, dict[str, Any]]:
+    reference = _frames(task, cameras, recorded, recorded[1], inp).astype(np.int16)
+    tried = []
+    for size in candidates:
+        diff = np.abs(_frames(task, cameras, size, recorded[1], inp).astype(np.int16)
+                      - reference)
+        row = {"size": list(size), "mean": float(diff.mean()),
+               "p99": float(np.percentile(diff, 99)), "max": int(diff.max()),
+               "frames": len(diff)}
+        tried.append(row)
+        if row["mean"] <= TOLERANCE["mean"] and row["p99"] <= TOLERANCE["p99"]:
+            return size, {"faithful_size": list(recorded), "tolerance": TOLERANCE,
+                          "tried": tried}
+    return None, {"faithful_size": list(recorded), "tolerance": TOLERANCE, "tried": tried}
+
+
+def _stats(row: dict[str, Any]) -> str:
+    return (f"mean |diff| {row['mean']:.2f}, p99 {row['p99']:.0f}, max {row['max']} grey "
+            f"levels over {row['frames']} frames")
+
+
+def _hw(size: Any) -> str:
+    return f"{size[0]}x{size[1]}"
+
+
+def to_policy_obs(obs: dict[str, Any], rendering: Rendering) -> dict[str, Any]:
+    """Resize a worker's frames to the policy's input size with the training resize."""
+    if "pixels" not in obs or not rendering.resize:
+        return obs
+    from so101_sim.utils.image_pipeline import resize_frames
+
+    cams = list(obs["pixels"])
+    small = resize_frames(np.stack([obs["pixels"][c] for c in cams]), rendering.input_size)
+    hwc = small.permute(0, 2, 3, 1).contiguous().numpy()
+    return {**obs, "pixels": {c: hwc[k] for k, c in enumerate(cams)}}

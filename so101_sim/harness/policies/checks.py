@@ -1,0 +1,70 @@
+"""What a lerobot checkpoint must look like for the env to feed it, and its fingerprint."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+from so101_sim.sim import CAMERAS, ENV_STATE_SIZE
+from so101_sim.train.checkpoint import TRAIN_INFO
+
+STATE_KEY = "observation.state"
+ENV_STATE_KEY = "observation.environment_state"
+IMAGE_PREFIX = "observation.images."
+
+
+def check_features(cfg: Any, path: Path) -> tuple[tuple[str, ...], Any, bool]:
+    """The camera names, image size and env-state use the checkpoint expects; errors if the
+    env cannot provide them (camera names are matched to env cameras by the caller)."""
+    where = f"checkpoint {path}"
+    cams: list[str] = []
+    sizes: set[tuple[int, int]] = set()
+    env_state = False
+    expected = (f"expected {STATE_KEY} (6,), {IMAGE_PREFIX}<camera> (3, H, W) for cameras "
+                f"{list(CAMERAS)}, and optionally {ENV_STATE_KEY} ({ENV_STATE_SIZE},)")
+    for key, ft in cfg.input_features.items():
+        shape = tuple(ft.shape)
+        if key == STATE_KEY:
+            if shape != (6,):
+                raise ValueError(f"{where} expects {key} of shape {shape}; the env's agent_pos "
+                                 "is (6,) (5 joints in degrees + gripper 0..100)")
+        elif key == ENV_STATE_KEY:
+            if shape != (ENV_STATE_SIZE,):
+                raise ValueError(f"{where} expects {key} of shape {shape}; the env's "
+                                 f"environment_state is ({ENV_STATE_SIZE},)")
+            env_state = True
+        elif key.startswith(IMAGE_PREFIX):
+            cam = key[len(IMAGE_PREFIX):]  # env cameras are matched by resolve_camera_map
+            if len(shape) != 3 or shape[0] != 3:
+                raise ValueError(f"{where} expects {key} of shape {shape}; {expected}")
+            cams.append(cam)
+            sizes.add((int(shape[1]), int(shape[2])))
+        else:
+            raise ValueError(f"{where} expects input {key!r}, which the env does not provide; "
+                             f"{expected}")
+    if len(sizes) > 1:
+        raise ValueError(f"{where} expects cameras at different sizes {sorted(sizes)}; the "
+                         "harness renders both cameras at one size")
+    action = cfg.output_features.get("action")
+    if action is None or tuple(action.shape) != (6,):
+        raise ValueError(f"{where} outputs action of shape "
+                         f"{None if action is None else tuple(action.shape)}; the env takes "
+                         "(6,) absolute joint targets in LeRobot units")
+    return tuple(cams), (sizes.pop() if sizes else None), env_state
+
+
+def fingerprint(path: Path, settings: dict[str, Any]) -> str:
+    """sha256 over the weights, config and processors, plus the inference settings (batch
+    size included: results are bitwise reproducible for a fixed one)."""
+    h = hashlib.sha256()
+    for f in sorted(path.iterdir()):
+        if f.is_file() and (f.name in ("config.json", "model.safetensors", TRAIN_INFO)
+                            or f.name.startswith(("policy_preprocessor", "policy_postprocessor"))):
+            h.update(f.name.encode())
+            with f.open("rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(block)
+    h.update(json.dumps(settings, sort_keys=True).encode())
+    return h.hexdigest()[:16]

@@ -1,0 +1,88 @@
+"""``eval --against RUN``: RUN's seeds in order, stopped by the sequential paired test."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from so101_sim.harness import PolicyInfo, StepPolicy, evaluate
+from so101_sim.harness.against import AgainstRun, evaluate_against
+from so101_sim.harness.compare import RunSide
+
+REST = np.array([-10.374, -81.670, 77.846, 2.681, 123.209, 6.495], dtype=np.float32)
+
+
+class _StandStill:
+    def reset(self, seed: int) -> None:
+        pass
+
+    def select_action(self, obs: dict) -> np.ndarray:
+        return REST
+
+
+def _stand_still() -> StepPolicy:
+    return StepPolicy(_StandStill, PolicyInfo(name="stand_still", fingerprint="rest"))
+
+
+def _side(outcomes: dict[int, bool]) -> RunSide:
+    return RunSide(path=Path("ref"), policy="ref", fingerprint="f", task="pick_place",
+                   task_sha256=None, images="", success=outcomes,
+                   actions_sha=dict.fromkeys(outcomes))
+
+
+@pytest.fixture(scope="module")
+def expert_run(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("against") / "expert"
+    evaluate("expert", episodes=60, n_envs=2, out_dir=out, videos=0, progress=False,
+             report=False, log=lambda _: None)
+    return out
+
+
+def test_pairs_enter_the_test_in_seed_order_only():
+    stop = AgainstRun(_side(dict.fromkeys(range(100, 110), True)))
+    done = {102: SimpleNamespace(success=False), 101: SimpleNamespace(success=False)}
+    assert not stop.update(done) and stop.test.episodes == 0  # seed 100 is not back yet
+    done[100] = SimpleNamespace(success=False)
+    stop.update(done)
+    assert stop.test.episodes == 3
+    assert stop.verdict().statistic["losses"] == 3
+
+
+def test_refuses_a_run_with_gaps():
+    with pytest.raises(ValueError, match="not consecutive"):
+        AgainstRun(_side({100: True, 102: True}))
+
+
+def test_a_broken_policy_is_declared_worse_early(expert_run, tmp_path):
+    out = tmp_path / "broken"
+    result = evaluate_against(_stand_still(), expert_run, n_envs=2, out_dir=out, videos=0,
+                              progress=False, report=False, log=lambda _: None)
+    verdict = result["sequential_verdict"]
+    assert verdict["verdict"] == "worse"
+    assert verdict["episodes"] < 20  # of the 60 seeds: it stopped once it knew
+    assert result["aggregated"]["n_episodes"] < 60
+    saved = json.loads((out / "eval_info.json").read_text())
+    assert saved["sequential_verdict"]["verdict"] == "worse"
+
+
+def test_the_expert_against_itself_is_not_worse(expert_run, tmp_path, capsys):
+    from so101_sim.cli import main
+
+    out = tmp_path / "same"
+    assert main(["eval", "--policy", "expert", "--against", str(expert_run), "--n-envs", "2",
+                 "--videos", "0", "--out", str(out)]) == 0
+    verdict = json.loads((out / "eval_info.json").read_text())["sequential_verdict"]
+    assert verdict["verdict"] == "not worse" and verdict["episodes"] <= 60
+    assert "sequential verdict: not worse" in capsys.readouterr().out
+
+
+def test_max_episodes_gives_undecided(expert_run, tmp_path):
+    result = evaluate_against("expert", expert_run, max_episodes=5, n_envs=2,
+                              out_dir=tmp_path / "short", videos=0, progress=False,
+                              report=False, log=lambda _: None)
+    assert result["sequential_verdict"]["verdict"] == "undecided"
+    assert result["sequential_verdict"]["episodes"] == 5
