@@ -22,7 +22,7 @@ export HF_HUB_OFFLINE := 1
 
 venv: $(STAMP)
 
-$(STAMP): pyproject.toml $(PLUGIN)/pyproject.toml
+$(STAMP): pyproject.toml $(PLUGIN)/pyproject.toml plugins/lerobot_robot_so101_sim/pyproject.toml
 	@if [ -z "$(PYTHON312)" ]; then \
 		echo "error: Python 3.12 not found (lerobot 0.6.x needs 3.12)."; \
 		echo "  install it, e.g.: pyenv install 3.12 | apt-get install python3.12 python3.12-venv"; \
@@ -32,7 +32,7 @@ $(STAMP): pyproject.toml $(PLUGIN)/pyproject.toml
 	@[ -x $(PY) ] && $(PY) -c 'import sys; sys.exit(sys.version_info[:2] != (3, 12))' \
 		|| { rm -rf $(VENV); $(PYTHON312) -m venv $(VENV); }
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[dev]" -e ./$(PLUGIN)
+	$(PY) -m pip install --quiet -e ".[dev]" -e ./$(PLUGIN) -e ./plugins/lerobot_robot_so101_sim
 	@touch $(STAMP)
 
 demo: $(STAMP)

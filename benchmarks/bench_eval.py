@@ -2,16 +2,21 @@
 
     .venv/bin/python benchmarks/bench_eval.py CHECKPOINT [--episodes 50] [--n-envs 8]
     .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --compare-lerobot
+    .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --paths --episodes 200
     .venv/bin/python benchmarks/bench_eval.py --quick          # tiny untrained checkpoint
 
 (a) `so101-sim eval` on N episodes with K env workers: wall time and the physics / render /
-policy split (target: 50 episodes in <= 3 min on 2 cores). It renders the harness's default
-way (the training data's size, then resize_frames) unless --image-size is given.
+policy split (target: the shipped policy's 200 seeds in <= 100 s on 2 cores). It renders the
+harness's default way (the smallest size that passes the self-check against the training
+data's size, then resize_frames) unless --image-size is given.
 (b) with --compare-lerobot, the same checkpoint and seeds through `lerobot-eval
 --env.type=so101_pick_place` and through the harness, both rendering at the policy's input
 size (lerobot-eval cannot resize) and both writing 10 videos (lerobot-eval always does):
-wall time of each whole command, the speed-up (target >= 2x) and whether the success rates'
-95% intervals overlap. Without a checkpoint a tiny untrained DiffusionPolicy is built
+wall time of each whole command, the speed-up (target >= 4x) and whether the success rates'
+95% intervals overlap.
+(c) with --paths, the default render path against --faithful on the same seeds, side by side:
+wall time of each, the ratio, and `so101-sim compare` on the pair (both rates, the discordant
+seeds, exact McNemar p). Without a checkpoint a tiny untrained DiffusionPolicy is built
 (tests/tiny_policy.py): it fails every episode, so only the timings mean anything.
 """
 
@@ -52,10 +57,11 @@ def policy_input_size(ckpt: Path) -> tuple[int, int]:
 
 
 def run_harness(ckpt: Path, out: Path, episodes: int, n_envs: int, videos: int,
-                image_size: tuple[int, int] | None, task: str) -> tuple[float, dict]:
+                image_size: tuple[int, int] | None, task: str,
+                flags: tuple[str, ...] = ()) -> tuple[float, dict]:
     cmd = [str(BIN / "so101-sim"), "eval", "--policy", str(ckpt), "--task", task,
            "--episodes", str(episodes), "--n-envs", str(n_envs), "--videos", str(videos),
-           "--out", str(out)]
+           "--out", str(out), *flags]
     if image_size:
         cmd += ["--image-size", f"{image_size[0]}x{image_size[1]}"]
     wall = timed(cmd)
@@ -100,6 +106,8 @@ def main() -> None:
     parser.add_argument("--n-envs", type=int, default=8, help="8 fills a policy forward")
     parser.add_argument("--image-size", default=None, help="HxW for (a); default: harness's")
     parser.add_argument("--compare-lerobot", action="store_true", help="also run (b)")
+    parser.add_argument("--paths", action="store_true",
+                        help="run (c): the default render path against --faithful")
     parser.add_argument("--quick", action="store_true",
                         help="4 episodes of 48 steps, 2 envs, (a) and (b): a sanity run")
     parser.add_argument("--max-steps", type=int, default=None,
@@ -138,7 +146,9 @@ def main() -> None:
           f"eval loop {agg['eval_s']:.1f} s); physics {t['physics_s']:.1f} s, render "
           f"{t['render_s']:.1f} s, policy {t['policy_s']:.1f} s (summed over episodes); "
           f"success {rate(agg['n_success'], n)}"
-          + ("  [target: 50 episodes <= 180 s]" if not args.quick else ""))
+          + ("  [target: 200 episodes <= 100 s]" if not args.quick else ""))
+    if args.paths:
+        compare_paths(ckpt, work, n, k, task)
     if not args.compare_lerobot:
         return
     inp = policy_input_size(ckpt)
@@ -154,8 +164,22 @@ def main() -> None:
           f"{min(10, n)} videos each:")
     print(f"    harness      {w_h:7.1f} s  success {rate(k_h, n)}")
     print(f"    lerobot-eval {w_l:7.1f} s  success {rate(k_l, n)}")
-    print(f"    speed-up {w_l / w_h:.2f}x (target >= 2x); 95% intervals "
+    print(f"    speed-up {w_l / w_h:.2f}x (target >= 4x); 95% intervals "
           f"{'overlap' if overlap else 'DO NOT overlap'}")
+
+
+def compare_paths(ckpt: Path, work: Path, n: int, k: int, task: str) -> None:
+    """(c) default render path against --faithful, same seeds, then the paired comparison."""
+    w_d, a_d = run_harness(ckpt, work / "paths_default", n, k, 0, None, task)
+    w_f, a_f = run_harness(ckpt, work / "paths_faithful", n, k, 0, None, task, ("--faithful",))
+    print(f"(c) {n} episodes, {k} envs, the same seeds:")
+    print(f"    default  {w_d:7.1f} s  success {rate(a_d['n_success'], n)}")
+    print(f"    faithful {w_f:7.1f} s  success {rate(a_f['n_success'], n)}")
+    print(f"    faithful / default wall: {w_f / w_d:.2f}x")
+    from so101_sim.harness.compare import compare_runs, summary_lines
+
+    for line in summary_lines(compare_runs(work / "paths_default", work / "paths_faithful")):
+        print(f"    {line}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,402 @@
+"""Success of a policy on the sim robot driven by lerobot's own tools, per seed, to pair with
+``so101-sim eval`` on the same seeds.
+
+    python plugins/lerobot_robot_so101_sim/agreement.py rollout --episodes 30 --seed-start 100000
+    so101-sim eval --policy policy/pick_place_diffusion --episodes 30 --seed-start 100000 \\
+        --faithful --out outputs/eval/agreement
+    python plugins/lerobot_robot_so101_sim/agreement.py rollout --episodes 30 \\
+        --seed-start 100000 --pair outputs/eval/agreement     # reads the saved outcomes again
+
+``rollout`` runs ``lerobot-rollout --strategy.type=episodic`` (sync inference) on seeds
+S..S+N-1: one dataset episode per seed, the policy reset at each, frames rendered at the
+checkpoint's recorded size and resized with so101-sim's training resize, as ``so101-sim eval
+--faithful`` does. A lerobot episode lasts ``--episode-time-s`` of wall time whatever happens
+in it (the scene holds after the sim's end), so an episode still running then is reported as
+unfinished: raise the time. ``async`` runs lerobot's policy server (a subprocess on a loopback
+port) and its ``RobotClient`` (in this process, unchanged, timing each action chunk from the
+observation's capture to its arrival); the sim starts the next seed as soon as an episode ends
+and the client has no notion of episodes, so the first chunk of an episode may still come from
+the previous one's frames. Per-seed lines, the rate with its Wilson interval and a JSON summary
+(``<out>/agreement.json``) come out; ``--pair DIR`` adds the paired table against an
+``so101-sim eval`` folder (its ``episodes.jsonl``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[2]
+BIN = Path(sys.executable).parent
+LEROBOT_ISSUE = "https://github.com/huggingface/lerobot/issues/3861"
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    if args.mode == "_serve":
+        return _serve(args)
+    policy = _policy_info(Path(args.policy))
+    if args.mode == "async":
+        _check_async(args, policy)
+    out = Path(args.out or f"outputs/agreement/{args.mode}")
+    out.mkdir(parents=True, exist_ok=True)
+    outcomes_path = out / "outcomes.jsonl"
+    outcomes_path.unlink(missing_ok=True)
+    latency: list[float] = []
+    if args.mode == "rollout":
+        _run_rollout(args, policy, out, outcomes_path)
+    else:
+        latency = _run_async(args, policy, out, outcomes_path)
+    return _report(args, out, outcomes_path, latency)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("mode", choices=["rollout", "async", "_serve"],
+                   help="rollout: lerobot-rollout episodic; async: policy server + robot client")
+    p.add_argument("--policy", default=str(REPO / "policy" / "pick_place_diffusion"),
+                   help="checkpoint folder (default: the shipped policy)")
+    p.add_argument("--task", default="pick_place", help="suite task name or task TOML path")
+    p.add_argument("--episodes", type=int, default=30, help="seeds to run (N)")
+    p.add_argument("--seed-start", type=int, default=100_000, help="first seed (S)")
+    p.add_argument("--out", default=None, help="folder for outcomes, logs, the rollout dataset")
+    p.add_argument("--render-size", default=None, metavar="HxW",
+                   help="render size (default: the checkpoint's recorded size, "
+                        "so101_sim_train.json dataset_image_size; else its input size)")
+    p.add_argument("--episode-time-s", type=float, default=None,
+                   help="rollout: wall seconds per lerobot episode (default: 4x the task's "
+                        "episode length at its fps)")
+    p.add_argument("--realtime", action="store_true",
+                   help="rollout: pace the sim at the task's fps (default: as fast as it runs)")
+    p.add_argument("--pair", default=None, metavar="EVAL_DIR",
+                   help="so101-sim eval folder of the same seeds: print the paired table")
+    p.add_argument("--port", type=int, default=0, help="async: server port (0: a free one)")
+    p.add_argument("--actions-per-chunk", type=int, default=None,
+                   help="async: actions per chunk (default: the policy's n_action_steps)")
+    p.add_argument("--chunk-size-threshold", type=float, default=0.5)
+    p.add_argument("--aggregate-fn", default="weighted_average")
+    p.add_argument("--patch-diffusion", action="store_true",
+                   help="async: let lerobot 0.6.1's policy server run a Diffusion Policy with "
+                        f"n_obs_steps > 1 (it fails otherwise, {LEROBOT_ISSUE}): a single "
+                        "observation is repeated over the history, as select_action does at an "
+                        "episode's first step")
+    p.add_argument("--host", default="127.0.0.1", help=argparse.SUPPRESS)
+    p.add_argument("--fps", type=int, default=30, help=argparse.SUPPRESS)
+    return p
+
+
+# --------------------------------------------------------------------------- the policy
+def _policy_info(path: Path) -> dict[str, Any]:
+    """Type, cameras, input size, recorded size and chunk length of a checkpoint folder."""
+    cfg_path = path / "config.json"
+    if not cfg_path.is_file():
+        raise SystemExit(f"--policy {path}: no config.json there; expected a checkpoint folder "
+                         "(pretrained_model), e.g. policy/pick_place_diffusion")
+    cfg = json.loads(cfg_path.read_text())
+    cams, size = [], None
+    for key, feat in cfg.get("input_features", {}).items():
+        if feat.get("type") == "VISUAL":
+            cams.append(key.rsplit(".", 1)[-1])
+            size = tuple(feat["shape"][1:])
+    recorded = None
+    train_json = path / "so101_sim_train.json"
+    if train_json.is_file():
+        recorded = json.loads(train_json.read_text()).get("dataset_image_size")
+    return {"path": path, "type": cfg["type"], "cameras": cams, "image_size": size,
+            "recorded_size": tuple(recorded) if recorded else size,
+            "n_obs_steps": int(cfg.get("n_obs_steps", 1)),
+            "n_action_steps": int(cfg.get("n_action_steps", cfg.get("chunk_size", 1)))}
+
+
+def _render_size(args: argparse.Namespace, policy: dict[str, Any]) -> tuple[int, int]:
+    if args.render_size:
+        try:
+            h, w = (int(v) for v in args.render_size.lower().split("x"))
+        except ValueError:
+            raise SystemExit(f"--render-size {args.render_size!r} is invalid; expected "
+                             "HEIGHTxWIDTH, e.g. 480x640") from None
+        return h, w
+    return policy["recorded_size"]
+
+
+def _robot_flags(args: argparse.Namespace, policy: dict[str, Any],
+                 outcomes_path: Path) -> dict[str, Any]:
+    """SO101SimConfig fields that show the policy its frames as it was trained on them."""
+    if policy["image_size"] is None:
+        raise SystemExit(f"--policy {policy['path']}: no camera input; this script measures "
+                         "image policies")
+    (h, w), (rh, rw) = policy["image_size"], _render_size(args, policy)
+    return {"task": args.task, "seed": args.seed_start, "camera_names": policy["cameras"],
+            "image_height": h, "image_width": w, "render_height": rh, "render_width": rw,
+            "outcomes_path": outcomes_path}
+
+
+# --------------------------------------------------------------------------- rollout
+def _run_rollout(args: argparse.Namespace, policy: dict[str, Any], out: Path,
+                 outcomes_path: Path) -> None:
+    from so101_sim.tasks import load_task
+
+    task = load_task(args.task)
+    episode_s = args.episode_time_s or 4 * task.max_steps / task.fps
+    robot = _robot_flags(args, policy, outcomes_path)
+    robot["realtime"] = args.realtime
+    flags = [f"--robot.{k}={_flag_value(v)}" for k, v in robot.items()]
+    dataset = out / "rollout_dataset"
+    if dataset.exists():
+        import shutil
+
+        shutil.rmtree(dataset)
+    cmd = [str(BIN / "lerobot-rollout"), "--strategy.type=episodic",
+           f"--policy.path={policy['path']}", "--robot.type=so101_sim", *flags,
+           "--dataset.repo_id=local/rollout_so101_sim_agreement", f"--dataset.root={dataset}",
+           f"--dataset.num_episodes={args.episodes}", f"--dataset.episode_time_s={episode_s}",
+           "--dataset.reset_time_s=0", "--dataset.push_to_hub=false", "--dataset.no_stamp=true",
+           "--dataset.rgb_encoder.vcodec=h264", f"--dataset.single_task={task.description}",
+           "--strategy.reset_to_initial_position=false", "--return_to_initial_position=false",
+           f"--fps={task.fps}", "--play_sounds=false"]
+    print(f"agreement: {args.episodes} episodes of lerobot-rollout episodic, "
+          f"{episode_s:.0f} s each; log in {out / 'rollout.log'}", flush=True)
+    _run_logged(cmd, out / "rollout.log")
+
+
+def _flag_value(v: Any) -> str:
+    if isinstance(v, list):
+        return "[" + ",".join(v) + "]"
+    return str(v).lower() if isinstance(v, bool) else str(v)
+
+
+def _run_logged(cmd: list[str], log: Path) -> None:
+    env = {**os.environ, "HF_HUB_OFFLINE": os.environ.get("HF_HUB_OFFLINE", "1")}
+    with open(log, "w", encoding="utf-8") as f:
+        run = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                             env=env, check=False)
+    if run.returncode != 0:
+        tail = log.read_text(encoding="utf-8", errors="replace")[-3000:]
+        raise SystemExit(f"{Path(cmd[0]).name} exited with {run.returncode}; the end of "
+                         f"{log}:\n{tail}")
+
+
+# --------------------------------------------------------------------------- async
+def _run_async(args: argparse.Namespace, policy: dict[str, Any], out: Path,
+               outcomes_path: Path) -> list[float]:
+    """Policy server in a subprocess, RobotClient here; returns chunk latencies (s)."""
+    from so101_sim.tasks import load_task
+
+    task = load_task(args.task)
+    port = args.port or _free_port()
+    serve = [sys.executable, str(Path(__file__).resolve()), "_serve", f"--port={port}",
+             f"--fps={task.fps}"] + (["--patch-diffusion"] if args.patch_diffusion else [])
+    with open(out / "server.log", "w", encoding="utf-8") as log:
+        server = subprocess.Popen(serve, stdout=log, stderr=subprocess.STDOUT,
+                                  stdin=subprocess.DEVNULL)
+    try:
+        _wait_for_port(port, server)
+        return _client(args, policy, task, port, outcomes_path)
+    finally:
+        server.terminate()
+        try:
+            server.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            server.kill()
+
+
+def _check_async(args: argparse.Namespace, policy: dict[str, Any]) -> None:
+    if policy["type"] == "diffusion" and policy["n_obs_steps"] > 1 and not args.patch_diffusion:
+        raise SystemExit(f"--policy {policy['path']} is a Diffusion Policy with n_obs_steps="
+                         f"{policy['n_obs_steps']}: lerobot 0.6.1's policy server fails on it "
+                         "(AssertionError in generate_actions: it passes one observation to "
+                         f"predict_action_chunk; {LEROBOT_ISSUE}); pass --patch-diffusion to "
+                         "run it with a single observation repeated over the history")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _wait_for_port(port: int, server: subprocess.Popen, timeout: float = 120.0) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if server.poll() is not None:
+            raise SystemExit(f"the policy server exited with {server.returncode} before "
+                             "listening; see server.log in --out")
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.2)
+    raise SystemExit(f"the policy server did not listen on port {port} within {timeout:.0f} s")
+
+
+def _client(args: argparse.Namespace, policy: dict[str, Any], task: Any, port: int,
+            outcomes_path: Path) -> list[float]:
+    from lerobot.async_inference.configs import RobotClientConfig
+    from lerobot.async_inference.robot_client import RobotClient
+    from lerobot_robot_so101_sim import SO101SimConfig
+
+    latencies: list[float] = []
+
+    class TimedClient(RobotClient):
+        """lerobot's client, unchanged, noting when each chunk arrives: the chunk's first
+        action carries the capture time of the observation it was computed from."""
+
+        def _aggregate_action_queues(self, incoming_actions: list, aggregate_fn: Any = None
+                                     ) -> None:
+            if incoming_actions:
+                latencies.append(time.time() - incoming_actions[0].get_timestamp())
+            super()._aggregate_action_queues(incoming_actions, aggregate_fn)
+
+    robot = SO101SimConfig(**_robot_flags(args, policy, outcomes_path), episode_end="reset")
+    cfg = RobotClientConfig(
+        policy_type=policy["type"], pretrained_name_or_path=str(policy["path"]), robot=robot,
+        actions_per_chunk=args.actions_per_chunk or policy["n_action_steps"],
+        task=task.description, server_address=f"127.0.0.1:{port}", policy_device="cpu",
+        chunk_size_threshold=args.chunk_size_threshold, fps=task.fps,
+        aggregate_fn_name=args.aggregate_fn)
+    client = TimedClient(cfg)
+    if not client.start():
+        client.stop()
+        raise SystemExit(f"could not reach the policy server on port {port}")
+    threads = [threading.Thread(target=client.receive_actions, daemon=True),
+               threading.Thread(target=client.control_loop, args=(task.description,),
+                                daemon=True)]
+    for t in threads:
+        t.start()
+    print(f"agreement: {args.episodes} episodes through async inference on port {port}",
+          flush=True)
+    sim = client.robot
+    try:
+        while sum(o["ended_by"] == "env" for o in sim.outcomes) < args.episodes:
+            if not threads[1].is_alive():
+                raise SystemExit("the robot client's control loop stopped; see the log above")
+            time.sleep(0.2)
+    finally:
+        client.shutdown_event.set()
+        threads[1].join(timeout=30)
+        client.stop()
+        threads[0].join(timeout=30)
+    return latencies
+
+
+def _serve(args: argparse.Namespace) -> int:
+    """lerobot's policy server, in this process (optionally with the Diffusion patch)."""
+    if args.patch_diffusion:
+        _patch_diffusion_single_observation()
+    from lerobot.async_inference import policy_server
+
+    sys.argv = [sys.argv[0], f"--host={args.host}", f"--port={args.port}", f"--fps={args.fps}"]
+    policy_server.serve()
+    return 0
+
+
+def _patch_diffusion_single_observation() -> None:
+    """lerobot 0.6.1's server calls ``predict_action_chunk`` with one observation and empty
+    history queues; a Diffusion Policy with n_obs_steps > 1 then fails an assertion. Repeat
+    that observation over the history first (what ``select_action`` does at an episode's
+    start; the fix proposed upstream, huggingface/lerobot PR 3886)."""
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+    from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
+
+    original = DiffusionPolicy.predict_action_chunk
+
+    def predict_action_chunk(self: Any, batch: dict, noise: Any = None) -> Any:
+        if not any(len(q) for q in self._queues.values()):
+            n, batch = self.config.n_obs_steps, dict(batch)
+            for key in (OBS_STATE, OBS_ENV_STATE, *self.config.image_features):
+                value = batch.get(key)
+                if value is not None and value.ndim in (2, 4):  # no history axis yet
+                    batch[key] = value.unsqueeze(1).repeat_interleave(n, dim=1)
+        return original(self, batch, noise=noise)
+
+    DiffusionPolicy.predict_action_chunk = predict_action_chunk
+
+
+# --------------------------------------------------------------------------- report
+def _report(args: argparse.Namespace, out: Path, outcomes_path: Path,
+            latency: list[float]) -> int:
+    from so101_sim.harness.stats import wilson_interval
+
+    rows = [json.loads(line) for line in outcomes_path.read_text().splitlines() if line.strip()]
+    rows = [r for r in rows if not r["discarded"] and r["ended_by"] != "disconnect"]
+    by_seed = {r["seed"]: r for r in rows}
+    seeds = range(args.seed_start, args.seed_start + args.episodes)
+    missing = [s for s in seeds if s not in by_seed]
+    for s in seeds:
+        r = by_seed.get(s)
+        if r is None:
+            print(f"seed {s}: not run")
+            continue
+        what = "success" if r["success"] else r["failure_mode"]
+        print(f"seed {s}: {what} ({r['steps']} steps)")
+    done = [by_seed[s] for s in seeds if s in by_seed]
+    unfinished = [r["seed"] for r in done if r["failure_mode"] == "unfinished"]
+    k, n = sum(r["success"] for r in done), len(done)
+    summary: dict[str, Any] = {"mode": args.mode, "policy": str(args.policy), "task": args.task,
+                               "seed_start": args.seed_start, "episodes": n, "successes": k,
+                               "unfinished": unfinished, "missing": missing,
+                               "per_seed": {str(r["seed"]): r["success"] for r in done}}
+    if n:
+        lo, hi = wilson_interval(k, n)
+        summary["rate"], summary["wilson95"] = k / n, [lo, hi]
+        print(f"success: {k}/{n} = {100 * k / n:.1f}% (95% Wilson {100 * lo:.1f}-"
+              f"{100 * hi:.1f})")
+    if len(latency) > 1:  # the first chunk waits for the server's warm-up: apart
+        ms = sorted(1000 * v for v in latency[1:])
+        summary["latency_ms"] = {"chunks": len(ms), "median": ms[len(ms) // 2],
+                                 "p90": ms[min(len(ms) - 1, int(0.9 * len(ms)))],
+                                 "max": ms[-1], "first_chunk": 1000 * latency[0]}
+        lat = summary["latency_ms"]
+        print(f"action latency (observation captured -> its chunk received): median "
+              f"{lat['median']:.0f} ms, p90 {lat['p90']:.0f} ms, max {lat['max']:.0f} ms over "
+              f"{lat['chunks']} chunks (the first, with the server's warm-up: "
+              f"{lat['first_chunk']:.0f} ms)")
+    print(f"pair with: so101-sim eval --policy {args.policy} --task {args.task} --episodes "
+          f"{args.episodes} --seed-start {args.seed_start} --faithful")
+    if args.pair:
+        summary["paired"] = _paired(Path(args.pair), summary["per_seed"])
+    (out / "agreement.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if unfinished:
+        print(f"agreement: {len(unfinished)} episodes were still running when lerobot's episode "
+              "ended; raise --episode-time-s", file=sys.stderr)
+    return 1 if unfinished or missing else 0
+
+
+def _paired(eval_dir: Path, ours: dict[str, bool]) -> dict[str, Any]:
+    from so101_sim.harness.stats import mcnemar_p_value, paired_difference_interval
+
+    path = eval_dir / "episodes.jsonl"
+    if not path.is_file():
+        raise SystemExit(f"--pair {eval_dir}: no episodes.jsonl there; expected the --out "
+                         "folder of `so101-sim eval`")
+    theirs = {}
+    for line in path.read_text().splitlines():
+        if line.strip():
+            rec = json.loads(line)
+            if rec.get("status", "ok") == "ok":
+                theirs[str(rec["seed"])] = bool(rec["success"])
+    common = sorted(set(ours) & set(theirs), key=int)
+    both = sum(ours[s] and theirs[s] for s in common)
+    only_a = sum(ours[s] and not theirs[s] for s in common)
+    only_b = sum(theirs[s] and not ours[s] for s in common)
+    neither = len(common) - both - only_a - only_b
+    lo, hi = paired_difference_interval(both, only_a, only_b, neither)
+    p = mcnemar_p_value(only_a, only_b)
+    print(f"paired with {eval_dir} on {len(common)} seeds: both {both}, only lerobot {only_a}, "
+          f"only so101-sim eval {only_b}, neither {neither}; difference "
+          f"{100 * (only_a - only_b) / max(1, len(common)):+.1f} points (95% "
+          f"{100 * lo:+.1f} to {100 * hi:+.1f}), McNemar p = {p:.3f}")
+    return {"seeds": len(common), "both": both, "only_lerobot": only_a,
+            "only_so101_sim_eval": only_b, "neither": neither, "difference95": [lo, hi],
+            "mcnemar_p": p}
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,99 @@
+"""Configs of the sim robot and its expert teleoperator, as lerobot's CLIs parse them.
+
+lerobot builds the device from its config by name (``make_device_from_device_class``): the
+config class ``XxxConfig`` of module ``lerobot_robot_so101_sim.config`` is turned into class
+``Xxx`` looked up in the parent package, which exports ``SO101Sim`` and ``SO101SimExpert``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from lerobot.robots.config import RobotConfig
+from lerobot.teleoperators.config import TeleoperatorConfig
+
+ROBOT_TYPE = "so101_sim"
+TELEOP_TYPE = "so101_sim_expert"
+EPISODE_END = ("auto", "reset", "hold")
+_SIZE_RANGE = (16, 2048)
+
+
+@RobotConfig.register_subclass(ROBOT_TYPE)
+@dataclass
+class SO101SimConfig(RobotConfig):
+    """``--robot.type=so101_sim``: the so101-sim MuJoCo arm with so101_follower's features."""
+
+    # A task of the suite (pick_place, lift, stack, tidy, pick_place_anywhere, pick_place_dr)
+    # or the path of a task TOML file.
+    task: str = "pick_place"
+    # Seed of the first episode; every later episode takes the next one.
+    seed: int = 0
+    # Cameras in the observations, e.g. [front,side,wrist]; empty: the task's own.
+    camera_names: list[str] = field(default_factory=list)
+    # Size of each camera image in the observations.
+    image_height: int = 480
+    image_width: int = 640
+    # Render at this size and resize to image_height x image_width with so101-sim's training
+    # resize (so101_sim.utils.image_pipeline.resize_frames); 0: render at the image size.
+    # 480 x 640 with 60 x 80 images feeds the shipped policy as `so101-sim eval --faithful` does.
+    render_height: int = 0
+    render_width: int = 0
+    # Mesh detail of this image width (0: the render width's), as so101-sim eval's reduced path.
+    mesh_width: int = 0
+    # Pace send_action at the task's fps (30 Hz), as a real arm moves; false: as fast as the
+    # caller calls it.
+    realtime: bool = True
+    # What follows the end of an episode: "reset" starts the next seed at once; "hold" freezes
+    # the last frame until lerobot saves (next seed) or discards (same seed again) its dataset
+    # episode; "auto" holds while the episode is being recorded into a dataset, else resets.
+    episode_end: str = "auto"
+    # End the command, as Ctrl-C does, once this many episodes have ended (0: never).
+    episodes: int = 0
+    # Append each episode's outcome to this JSON-lines file (for scripts around the CLIs).
+    outcomes_path: Path | None = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.episode_end not in EPISODE_END:
+            raise ValueError(f"--robot.episode_end={self.episode_end!r} is invalid; expected "
+                             f"one of {EPISODE_END}, e.g. --robot.episode_end=hold")
+        for name in ("seed", "episodes", "mesh_width"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"--robot.{name}={getattr(self, name)} is invalid; expected an "
+                                 "integer >= 0")
+        lo, hi = _SIZE_RANGE
+        for name in ("image_height", "image_width"):
+            if not lo <= getattr(self, name) <= hi:
+                raise ValueError(f"--robot.{name}={getattr(self, name)} is invalid; expected "
+                                 f"{lo}..{hi} pixels, e.g. --robot.image_height=60 "
+                                 "--robot.image_width=80")
+        render = (self.render_height, self.render_width)
+        if render != (0, 0) and not all(lo <= v <= hi for v in render):
+            raise ValueError(f"--robot.render_height/width={render[0]}x{render[1]} is invalid; "
+                             f"expected both 0 (render at the image size) or both {lo}..{hi}, "
+                             "e.g. --robot.render_height=480 --robot.render_width=640")
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return self.image_height, self.image_width
+
+    @property
+    def render_size(self) -> tuple[int, int]:
+        """Where the cameras render: the image size unless a render size is given."""
+        if self.render_height:
+            return self.render_height, self.render_width
+        return self.image_size
+
+
+@TeleoperatorConfig.register_subclass(TELEOP_TYPE)
+@dataclass
+class SO101SimExpertConfig(TeleoperatorConfig):
+    """``--teleop.type=so101_sim_expert``: so101-sim's scripted expert at the controls of the
+    so101_sim robot connected in the same process."""
+
+    # --robot.id of the sim robot to drive; empty: the one so101_sim robot connected.
+    robot_id: str | None = None
+    # Retry a missed grasp, a dropped cube or a cube left off the target (so101-sim record's
+    # --recover).
+    recover: bool = False

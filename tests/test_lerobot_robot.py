@@ -1,0 +1,367 @@
+"""The sim as a LeRobot robot (plugins/lerobot_robot_so101_sim): `--robot.type=so101_sim` and
+`--teleop.type=so101_sim_expert` through lerobot's own console scripts, headless and offline,
+with small images and short episodes."""
+
+from __future__ import annotations
+
+import importlib.metadata
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from lerobot_robot_so101_sim import (
+    SO101Sim,
+    SO101SimConfig,
+    SO101SimExpert,
+    SO101SimExpertConfig,
+    connected_robot,
+)
+from tiny_act import make_tiny_act_checkpoint
+from tiny_policy import short_task
+
+from so101_sim.utils.units import FEATURE_NAMES
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+AGREEMENT = ROOT / "plugins" / "lerobot_robot_so101_sim" / "agreement.py"
+SHIPPED = ROOT / "policy" / "pick_place_diffusion"
+H, W = 48, 64
+TASK_TEXT = "Pick up the red cube and place it on the green target."
+
+
+def _env(tmp: Path) -> dict[str, str]:
+    return {**os.environ, "HF_HUB_OFFLINE": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+            "HF_LEROBOT_HOME": str(tmp / "lerobot_home"),
+            "HF_LEROBOT_CALIBRATION": str(tmp / "calibration")}
+
+
+def _run(cmd: list[str], tmp: Path, timeout: float = 300) -> subprocess.CompletedProcess:
+    """A console script as a person runs it, minus the terminal (no keyboard listener)."""
+    return subprocess.run([str(c) for c in cmd], stdin=subprocess.DEVNULL, capture_output=True,
+                          text=True, timeout=timeout, env=_env(tmp), check=False)
+
+
+def _outcomes(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def _robot(tmp: Path, **kw) -> SO101Sim:
+    cfg = dict(image_height=H, image_width=W, realtime=False, calibration_dir=tmp / "cal")
+    return SO101Sim(SO101SimConfig(**{**cfg, **kw}))
+
+
+# ------------------------------------------------------------------ discovery, features, rules
+def test_one_distribution_registers_robot_and_teleop():
+    dist = importlib.metadata.distribution("lerobot_robot_so101_sim")
+    assert dist.metadata["Name"] == "lerobot_robot_so101_sim"  # underscores: lerobot's prefix
+    code = ("import sys; from lerobot.utils.import_utils import register_third_party_plugins; "
+            "from lerobot.robots import RobotConfig; "
+            "from lerobot.teleoperators import TeleoperatorConfig; "
+            "assert 'lerobot_robot_so101_sim' not in sys.modules; "
+            "register_third_party_plugins(); "
+            "print(sorted(RobotConfig.get_known_choices()), "
+            "sorted(TeleoperatorConfig.get_known_choices()))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, check=True).stdout
+    assert "'so101_sim'" in out and "'so101_sim_expert'" in out
+
+
+def test_features_are_so101_followers_and_leaders(tmp_path):
+    from lerobot.cameras.opencv import OpenCVCameraConfig
+    from lerobot.robots.so_follower import SO101Follower, SO101FollowerConfig
+    from lerobot.teleoperators.so_leader import SO101Leader, SO101LeaderConfig
+
+    cams = {c: OpenCVCameraConfig(index_or_path=0, width=W, height=H, fps=30)
+            for c in ("front", "side")}
+    real = SO101Follower(SO101FollowerConfig(port="/dev/null", cameras=cams,
+                                             calibration_dir=tmp_path / "real"))
+    leader = SO101Leader(SO101LeaderConfig(port="/dev/null", calibration_dir=tmp_path / "lead"))
+    sim = _robot(tmp_path)
+    expert = SO101SimExpert(SO101SimExpertConfig(calibration_dir=tmp_path / "exp"))
+    assert list(sim.observation_features.items()) == list(real.observation_features.items())
+    assert list(sim.action_features.items()) == list(real.action_features.items())
+    assert list(expert.action_features.items()) == list(leader.action_features.items())
+    assert tuple(sim.action_features) == FEATURE_NAMES
+
+    sim.connect()
+    try:
+        obs = sim.get_observation()
+        assert obs["front"].shape == (H, W, 3) and obs["front"].dtype == np.uint8
+        joints = np.array([obs[k] for k in FEATURE_NAMES], dtype=np.float32)
+        np.testing.assert_array_equal(joints, sim.env.agent_pos())  # LeRobot units, as the env
+    finally:
+        sim.disconnect()
+
+    # rendered larger and resized with the training resize, like `so101-sim eval`
+    from so101_sim.utils.image_pipeline import resize_frames
+
+    big = _robot(tmp_path, render_height=2 * H, render_width=2 * W, mesh_width=W)
+    big.connect()
+    try:
+        frame = big.env.render()
+        want = resize_frames(np.stack([frame[:, :2 * W], frame[:, 2 * W:]]), (H, W))
+        obs = big.get_observation()
+        np.testing.assert_array_equal(obs["side"], want[1].permute(1, 2, 0).numpy())
+    finally:
+        big.disconnect()
+
+
+def test_episode_rules_without_and_with_a_dataset(tmp_path):
+    """Without a dataset an ended episode starts the next seed at once; while one is recorded
+    it holds until lerobot saves (next seed) or discards (same seed), and an episode lerobot
+    stops recording first ends as unfinished."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    original_save = LeRobotDataset.__dict__["save_episode"]
+    task = short_task(tmp_path, max_steps=12)
+    robot = _robot(tmp_path, task=str(task), seed=5, outcomes_path=tmp_path / "out.jsonl")
+    expert = SO101SimExpert(SO101SimExpertConfig(calibration_dir=tmp_path / "exp"))
+    with pytest.raises(LookupError, match=r"--robot\.type=so101_sim"):
+        connected_robot()
+    expert.connect()
+    robot.connect()
+    try:
+        assert LeRobotDataset.__dict__["save_episode"] is not original_save  # watched
+        assert connected_robot() is robot
+        for _ in range(12):
+            robot.send_action(expert.get_action())
+        assert robot.outcomes[-1]["seed"] == 5 and robot.outcomes[-1]["ended_by"] == "env"
+        assert robot.episode[:3] == (1, 6, 0)  # next seed at once: nothing records it
+
+        dataset = SimpleNamespace(num_episodes=0)
+        for _ in range(12):  # recorded: frame after each step, as lerobot-record does
+            robot.get_observation()
+            robot.send_action(expert.get_action())
+            robot.on_dataset_event("frame", dataset)
+        assert robot.episode == (1, 6, 12, True)  # held
+        held = robot.get_observation()
+        assert expert.get_action() == robot.held_action()
+        robot.send_action({"gripper.pos": 0.0})
+        assert robot.episode == (1, 6, 12, True)
+        assert robot.get_observation()["front"] is held["front"]
+        dataset.num_episodes = 1
+        robot.on_dataset_event("saved", dataset)
+        assert robot.outcomes[-1]["dataset_episode"] == 0 and robot.episode[:3] == (2, 7, 0)
+
+        for _ in range(3):  # lerobot stops recording after 3 frames (its episode_time_s)
+            robot.send_action(expert.get_action())
+            robot.on_dataset_event("frame", dataset)
+        robot.send_action(expert.get_action())  # a reset-phase step, not recorded
+        robot.send_action(expert.get_action())  # -> the episode is over
+        cut = robot.outcomes[-1]
+        assert (cut["seed"], cut["failure_mode"], cut["ended_by"], cut["steps"]) == \
+            (7, "unfinished", "lerobot", 4)
+        robot.on_dataset_event("discarded", dataset)  # re-record: the same scene again
+        assert robot.episode[:3] == (3, 7, 0) and robot.outcomes[-1]["discarded"]
+
+        # joints left out keep their target; unknown keys and NaN are refused, named
+        before = robot.held_action()
+        applied = robot.send_action({"gripper.pos": 50.0})
+        assert applied["gripper.pos"] == 50.0
+        assert applied["elbow_flex.pos"] == pytest.approx(before["elbow_flex.pos"])
+        with pytest.raises(ValueError, match=r"\['elbow\.pos'\].*shoulder_pan\.pos"):
+            robot.send_action({"elbow.pos": 1.0})
+        with pytest.raises(ValueError, match=r"wrist_flex\.pos=nan is not finite"):
+            robot.send_action({"wrist_flex.pos": float("nan")})
+    finally:
+        robot.disconnect()
+        expert.disconnect()
+    assert LeRobotDataset.__dict__["save_episode"] is original_save  # restored
+    written = _outcomes(tmp_path / "out.jsonl")
+    assert [r["seed"] for r in written] == [5, 6, 7, 7]
+    assert written[-1]["ended_by"] == "disconnect"
+
+    paced = _robot(tmp_path, task=str(task), realtime=True)
+    paced.connect()
+    try:
+        t0 = time.perf_counter()
+        for _ in range(7):
+            paced.send_action(paced.held_action())
+        assert time.perf_counter() - t0 >= 6 / 30  # one step per 1/fps, as the real arm
+    finally:
+        paced.disconnect()
+
+
+def test_bad_config_values_are_named(tmp_path):
+    with pytest.raises(ValueError, match=r"episode_end='later'.*hold"):
+        SO101SimConfig(episode_end="later")
+    with pytest.raises(ValueError, match="render_height/width=480x0"):
+        SO101SimConfig(render_height=480)
+    with pytest.raises(ValueError, match=r"camera_names=\['top'\]"):
+        SO101Sim(SO101SimConfig(camera_names=["top"], calibration_dir=tmp_path))
+
+
+def test_agreement_pairs_seeds_with_an_eval_folder(tmp_path, capsys):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("agreement", AGREEMENT)
+    agreement = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(agreement)
+    (tmp_path / "episodes.jsonl").write_text("".join(
+        json.dumps({"seed": s, "episode_ix": i, "status": "ok", "success": ok}) + "\n"
+        for i, (s, ok) in enumerate([(10, True), (11, True), (12, False), (13, False)])))
+    ours = {"10": True, "11": False, "12": True, "13": False, "14": True}
+    paired = agreement._paired(tmp_path, ours)
+    assert (paired["seeds"], paired["both"], paired["only_lerobot"],
+            paired["only_so101_sim_eval"], paired["neither"]) == (4, 1, 1, 1, 1)
+    assert paired["mcnemar_p"] == 1.0 and "McNemar p = 1.000" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------ lerobot's console scripts
+@pytest.mark.slow
+def test_lerobot_record_with_the_expert_then_train_and_replay(tmp_path):
+    """lerobot-record writes one dataset episode per seed, each a success (the expert solves
+    seeds 0 and 1); so101-sim's trainer reads it; lerobot-replay re-runs episode 1 exactly."""
+    from lerobot.datasets import LeRobotDataset
+
+    from so101_sim.dataset.reader import open_lerobot_dataset
+    from so101_sim.train.presets import load_preset
+    from so101_sim.train.trainer import load_demos
+
+    root, outcomes = tmp_path / "demos", tmp_path / "record.jsonl"
+    run = _run([BIN / "lerobot-record", "--robot.type=so101_sim", f"--robot.image_height={H}",
+                f"--robot.image_width={W}", f"--robot.outcomes_path={outcomes}",
+                "--teleop.type=so101_sim_expert", "--dataset.repo_id=local/so101_sim_demos",
+                f"--dataset.root={root}", "--dataset.num_episodes=2",
+                "--dataset.episode_time_s=9", "--dataset.reset_time_s=0",
+                "--dataset.push_to_hub=false", "--dataset.no_stamp=true",
+                f"--dataset.single_task={TASK_TEXT}", "--dataset.rgb_encoder.vcodec=h264",
+                "--play_sounds=false"], tmp_path)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "so101_sim episode 1 (seed 1): success" in run.stderr
+    recorded = _outcomes(outcomes)
+    assert [(r["seed"], r["success"], r["dataset_episode"]) for r in recorded] == \
+        [(0, True, 0), (1, True, 1)]
+
+    ds = LeRobotDataset("local/so101_sim_demos", root=root)
+    assert ds.num_episodes == 2 and ds.meta.robot_type == "so101_sim"
+    assert tuple(ds.meta.features["observation.images.front"]["shape"]) == (H, W, 3)
+    assert ds.meta.features["action"]["names"] == list(FEATURE_NAMES)
+    demos = load_demos(open_lerobot_dataset(root), load_preset("cpu"), None)
+    assert demos.state.shape == (ds.num_frames, 6)
+    assert {k: v.shape[1:] for k, v in demos.frames.items()} == \
+        {f"observation.images.{c}": (3, 60, 80) for c in ("front", "side")}
+
+    replayed = tmp_path / "replay.jsonl"
+    run = _run([BIN / "lerobot-replay", "--robot.type=so101_sim", "--robot.seed=1",
+                "--robot.episode_end=hold", f"--robot.image_height={H}",
+                f"--robot.image_width={W}", f"--robot.outcomes_path={replayed}",
+                "--dataset.repo_id=local/so101_sim_demos", f"--dataset.root={root}",
+                "--dataset.episode=1", "--play_sounds=false"], tmp_path)
+    assert run.returncode == 0, run.stderr[-3000:]
+    (again,) = _outcomes(replayed)
+    assert (again["seed"], again["success"], again["steps"]) == (1, True, recorded[1]["steps"])
+
+
+@pytest.mark.slow
+def test_lerobot_teleoperate_with_the_expert(tmp_path):
+    run = _run([BIN / "lerobot-teleoperate", "--robot.type=so101_sim",
+                f"--robot.image_height={H}", f"--robot.image_width={W}",
+                "--teleop.type=so101_sim_expert", "--teleop_time_s=3"], tmp_path)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "so101_sim robot connected" in run.stderr
+    assert "so101_sim robot disconnected" in run.stderr
+
+
+@pytest.mark.slow
+def test_lerobot_rollout_runs_the_shipped_policy(tmp_path):
+    """Base strategy for 3 s; the episodic strategy through agreement.py: one dataset episode
+    per seed, frames rendered larger and resized to the policy's 60x80 as so101-sim eval does."""
+    outcomes = tmp_path / "base.jsonl"
+    run = _run([BIN / "lerobot-rollout", "--strategy.type=base", f"--policy.path={SHIPPED}",
+                "--robot.type=so101_sim", "--robot.image_height=60", "--robot.image_width=80",
+                "--robot.render_height=120", "--robot.render_width=160",
+                "--robot.realtime=false", f"--robot.outcomes_path={outcomes}", "--duration=3",
+                "--return_to_initial_position=false", "--play_sounds=false"], tmp_path)
+    assert run.returncode == 0, run.stderr[-3000:]
+    (base,) = _outcomes(outcomes)
+    assert base["ended_by"] == "disconnect" and base["steps"] > 0
+
+    out = tmp_path / "agreement"
+    run = _run([sys.executable, AGREEMENT, "rollout", "--episodes", "2", "--seed-start",
+                "100000", "--task", short_task(tmp_path, max_steps=20), "--render-size",
+                "120x160", "--episode-time-s", "6", "--out", out], tmp_path)
+    assert run.returncode == 0, run.stdout + run.stderr[-3000:]
+    assert "seed 100001: " in run.stdout and "success: " in run.stdout
+    summary = json.loads((out / "agreement.json").read_text())
+    assert summary["episodes"] == 2 and summary["unfinished"] == []
+    rows = _outcomes(out / "outcomes.jsonl")
+    assert [(r["seed"], r["dataset_episode"], r["steps"]) for r in rows] == \
+        [(100000, 0, 20), (100001, 1, 20)]
+    from lerobot.datasets import LeRobotDataset
+
+    ds = LeRobotDataset("local/rollout_so101_sim_agreement", root=out / "rollout_dataset")
+    assert ds.num_episodes == 2
+    assert tuple(ds.meta.features["observation.images.front"]["shape"]) == (60, 80, 3)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _listening(port: int) -> bool:
+    with socket.socket() as s:
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+@pytest.mark.slow
+def test_async_inference_drives_the_sim(tmp_path):
+    """lerobot's policy server and robot client, unchanged, on a loopback port (a tiny ACT:
+    lerobot 0.6.1's server cannot run a Diffusion Policy with n_obs_steps > 1, see below);
+    --robot.episodes=1 stops the client as Ctrl-C would after one episode."""
+    ckpt = make_tiny_act_checkpoint(tmp_path / "act", input_size=(H, W))
+    port, outcomes = _free_port(), tmp_path / "async.jsonl"
+    server = subprocess.Popen([sys.executable, "-m", "lerobot.async_inference.policy_server",
+                               "--host=127.0.0.1", f"--port={port}", "--fps=30"],
+                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL, env=_env(tmp_path))
+    try:
+        end = time.monotonic() + 120
+        while not _listening(port):
+            assert time.monotonic() < end and server.poll() is None, "server did not listen"
+            time.sleep(0.2)
+        run = _run([sys.executable, "-m", "lerobot.async_inference.robot_client",
+                    "--robot.type=so101_sim", f"--robot.task={short_task(tmp_path, 20)}",
+                    f"--robot.image_height={H}", f"--robot.image_width={W}",
+                    "--robot.episodes=1", f"--robot.outcomes_path={outcomes}",
+                    f"--task={TASK_TEXT}", f"--server_address=127.0.0.1:{port}",
+                    "--policy_type=act", f"--pretrained_name_or_path={ckpt}",
+                    "--policy_device=cpu", "--actions_per_chunk=8"], tmp_path, timeout=240)
+    finally:
+        server.send_signal(signal.SIGINT)
+        try:
+            server.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            server.kill()
+    # KeyboardInterrupt is how the client stops (its own finally: robot.disconnect())
+    assert run.returncode in (0, 130, -signal.SIGINT), run.stderr[-3000:]
+    assert "so101_sim robot disconnected" in run.stderr
+    first = _outcomes(outcomes)[0]
+    assert (first["seed"], first["ended_by"]) == (0, "env") and 0 < first["steps"] <= 20
+
+
+@pytest.mark.slow
+def test_agreement_async_runs_the_shipped_diffusion_policy(tmp_path):
+    run = _run([sys.executable, AGREEMENT, "async", "--episodes", "1"], tmp_path)
+    assert run.returncode != 0 and "issues/3861" in run.stderr and "--patch-diffusion" in \
+        run.stderr  # lerobot 0.6.1's server cannot, unpatched: said before anything starts
+    out = tmp_path / "async"
+    run = _run([sys.executable, AGREEMENT, "async", "--patch-diffusion", "--episodes", "1",
+                "--task", short_task(tmp_path, max_steps=20), "--render-size", "120x160",
+                "--out", out], tmp_path)
+    assert run.returncode == 0, run.stdout + run.stderr[-3000:]
+    assert "seed 100000: " in run.stdout and "action latency" in run.stdout
+    summary = json.loads((out / "agreement.json").read_text())
+    assert summary["episodes"] == 1 and summary["latency_ms"]["chunks"] >= 1
