@@ -9,7 +9,11 @@ from pathlib import Path
 import pytest
 
 from so101_sim.cli import main
-from so101_sim.harness.camera_map import parse_camera_map, resolve_camera_map
+from so101_sim.harness.camera_map import (
+    describe_camera_map,
+    parse_camera_map,
+    resolve_camera_map,
+)
 
 sys.path.insert(0, str(Path(__file__).parent))
 from tiny_policy import make_tiny_diffusion_checkpoint, short_task
@@ -83,3 +87,25 @@ def test_bad_camera_map_is_a_usage_error(capsys):
     assert "POLICY_CAMERA=ENV_CAMERA" in capsys.readouterr().err
     assert main(["eval", "--policy", "expert", "--camera-map", MAP, "--episodes", "1"]) == 2
     assert "apply to lerobot checkpoints" in capsys.readouterr().err
+
+
+def test_one_env_camera_for_two_policy_cameras_is_said_and_shown(ckpts, tmp_path, capsys):
+    """front=side,side=side (a one-camera rig): allowed, with a note, and the summary states
+    both policy cameras, not only the renamed one."""
+    notes: list[str] = []
+    mapping = resolve_camera_map(["front", "side"], parse_camera_map("front=side,side=side"),
+                                 "ckpt", log=notes.append)
+    assert mapping == {"front": "side", "side": "side"}
+    assert notes == ["so101-sim eval: note: --camera-map feeds env camera side to policy "
+                     "cameras front and side (the same image in each): fine for a one-camera "
+                     "rig; otherwise map each policy camera to its own env camera"]
+    assert describe_camera_map(mapping) == "policy front <- env side, policy side <- env side"
+    assert describe_camera_map({"top": "front", "side": "side"}) == "policy top <- env front"
+
+    task = short_task(tmp_path, max_steps=32)
+    assert _eval(ckpts["front"], tmp_path / "one", task, "--episodes", "1",
+                 "--camera-map", "front=side,side=side") == 0
+    out = capsys.readouterr().out
+    assert out.count("feeds env camera side to policy cameras front and side") == 1
+    said = "cameras: policy front <- env side, policy side <- env side"
+    assert said in out.strip().splitlines()[-1]  # the summary line

@@ -138,3 +138,26 @@ def test_assert_not_worse_on_the_baseline_seeds(tmp_path, capsys):
     rest = StepPolicy(_Rest, PolicyInfo(name="rest", fingerprint="rest"))
     with pytest.raises(pytest.fail.Exception, match="SIGNIFICANTLY WORSE"):
         assert_not_worse(rest, base, n_envs=1)  # 0/8 vs 8/8: p = 0.5**8 < 0.01
+
+
+def test_compare_out_that_is_a_file_is_one_line(tmp_path, capsys):
+    a = _fake_run(tmp_path, "a", dict.fromkeys(range(100_000, 100_004), True))
+    b = _fake_run(tmp_path, "b", dict.fromkeys(range(100_000, 100_004), False))
+    (tmp_path / "taken").write_text("a file, not a folder")
+    assert main(["compare", str(a), str(b), "--out", str(tmp_path / "taken")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"so101-sim compare: error: compare --out {tmp_path / 'taken'} is a file; "
+                   "expected a folder for compare.json and compare.md: choose another --out "
+                   "(or leave it out)"]
+    assert (tmp_path / "taken").read_text() == "a file, not a folder"
+
+
+def test_comparing_a_folder_with_itself_warns(tmp_path, capsys):
+    a = _fake_run(tmp_path, "a", dict.fromkeys(range(100_000, 100_004), True))
+    assert main(["compare", str(a), str(a), "--out", str(tmp_path / "cmp")]) == 0
+    warnings = [ln for ln in capsys.readouterr().out.splitlines() if "warning" in ln]
+    assert warnings == [f"so101-sim compare: warning: A and B are the same folder ({a}); every "
+                        "seed agrees with itself, so this says nothing about the policy: pass "
+                        "two eval folders"]
+    b = _fake_run(tmp_path, "b", dict.fromkeys(range(100_000, 100_004), True))
+    compare_runs(a, b, log=lambda line: pytest.fail(f"warned about two folders: {line}"))

@@ -33,6 +33,7 @@ KEYS = ("seed", "success", "failure_mode", "steps", "actions_sha")
 ENV = {**os.environ, "RAY_AUTH_MODE": "disabled", "HF_HUB_OFFLINE": "1",
        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
 pytestmark = [pytest.mark.slow, pytest.mark.ray_cluster]
+NODES: dict[str, subprocess.Popen] = {}  # the second node's `ray start --block` process
 
 
 def _free_port() -> int:
@@ -91,6 +92,7 @@ def cluster(tmp_path_factory) -> Iterator[str]:
                 time.sleep(0.5)
         procs.append(_start(["--address", address, "--node-ip-address", "127.0.0.1",
                              "--num-cpus", "2"], logs / "node.log"))
+        NODES["worker"] = procs[1]  # the node-loss test (last in this file) stops it
         deadline = time.monotonic() + 180
         while _alive_nodes(address) < 2:
             if time.monotonic() > deadline or procs[1].poll() is not None:
@@ -137,3 +139,50 @@ def test_eval_and_record_on_a_two_node_cluster(cluster: str, tmp_path: Path) -> 
     rows_a = [row for f in a for row in pq.read_table(f, columns=cols).to_pylist()]
     rows_b = [row for f in b for row in pq.read_table(f, columns=cols).to_pylist()]
     assert rows_a == rows_b
+
+
+def _crash_node(node: subprocess.Popen) -> None:
+    """Kill every process of a node (its `ray start` session: raylet, agents and the actors'
+    worker processes) at once, as a machine that drops off the network would."""
+    sid = os.getsid(node.pid)
+    ps = subprocess.run(["ps", "-eo", "pid,sid"], capture_output=True, text=True).stdout
+    for line in ps.splitlines()[1:]:
+        pid, session = (int(v) for v in line.split())
+        if session == sid:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+    node.wait(timeout=60)
+
+
+def test_losing_a_node_mid_run_finishes_on_the_rest(cluster: str, tmp_path: Path) -> None:
+    """The second node dies while an eval runs on both: its workers are replaced on the head
+    node (oversubscribed), their episodes run again, and every seed's result equals a local
+    run's. Kills that node: keep this test last in the file."""
+    n = "36"  # episodes of ~0.3 s each on 3 workers: still running when the node is gone
+    local = evaluate("expert", episodes=int(n), n_envs=2, videos=0, report=False,
+                     out_dir=tmp_path / "local", progress=False, log=lambda _: None)
+    out = tmp_path / "ray"
+    proc = subprocess.Popen([str(BIN / "so101-sim"), "eval", "--policy", "expert",
+                             "--episodes", n, "--n-envs", "3", "--videos", "0",
+                             "--image-size", "48x64", "--out", str(out), "--backend", "ray",
+                             "--ray-address", cluster], env=ENV, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 600
+        log = out / "episodes.jsonl"
+        while not (log.is_file() and log.read_text().count("\n") >= 1):  # both nodes busy
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.2)
+        _crash_node(NODES["worker"])
+        assert proc.poll() is None, "the eval ended before the node was lost"
+        said, err = proc.communicate(timeout=900)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 0, err[-3000:]
+    assert "restarts without a CPU reservation" in said + err
+    info = json.loads((out / "eval_info.json").read_text())
+    assert info["config"]["workers"]["restarts"] >= 1, info["config"]["workers"]
+    assert info["config"]["reruns"], "no episode was cut short by the node loss"
+    ours = [tuple(e[k] for k in KEYS) for e in info["per_episode"]]
+    assert ours == [tuple(e[k] for k in KEYS) for e in local["per_episode"]]

@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
+import os
 import sys
 
 from so101_sim.cli.parser import build_parser, parse_camera_map_arg, parse_image_size
+from so101_sim.utils.disk import again_hint, free_space, is_disk_full, set_command
+from so101_sim.workers.ray_connect import CONNECT_TIMEOUT_ENV
 
 __all__ = ["build_parser", "main", "parse_camera_map_arg", "parse_image_size"]
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    set_command(["so101-sim", *(sys.argv[1:] if argv is None else argv)])  # disk-full hint
+    if getattr(args, "ray_connect_timeout", None) is not None:  # read by workers.ray_connect
+        os.environ[CONNECT_TIMEOUT_ENV] = str(args.ray_connect_timeout)
     try:
         return args.func(args)
     except PermissionError as exc:
@@ -20,6 +26,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"so101-sim {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a full disk outside a locked folder: one line too
+        if not is_disk_full(exc):
+            raise
+        print(f"so101-sim {args.command}: error: the disk is full ({exc.filename or exc}): "
+              f"{free_space(exc.filename or '.')} free there; {again_hint('rerun')}",
+              file=sys.stderr)
         return 2
 
 

@@ -38,6 +38,9 @@ def add_backend_args(p: argparse.ArgumentParser, count_flag: str) -> None:
     p.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="with --backend ray: 'auto' or HOST:PORT joins a running cluster "
                         "(`ray start --head` first); omitted, a local Ray runtime is started")
+    p.add_argument("--ray-connect-timeout", type=float, default=None, metavar="S",
+                   help="seconds to wait for the cluster at --ray-address before giving up "
+                        "with a message (default 30)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -36,6 +36,9 @@ from typing import Any
 
 import numpy as np
 
+from so101_sim.utils.atomic import fsync_dir as _fsync_dir
+from so101_sim.utils.atomic import write_atomic
+
 SIDECAR = "so101_sim_recording.json"
 SPOOL = ".so101_spool"
 SCRATCH = ".so101_tmp"  # temporary files of this run (lerobot's too): same filesystem
@@ -63,24 +66,7 @@ def crash_point(name: str) -> None:
 
 
 # ----------------------------------------------------------------------------- small files
-def write_atomic(path: Path, data: bytes) -> None:
-    """Replace `path` with `data` so that a kill leaves the old or the new file, never half."""
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    tmp.replace(path)
-    _fsync_dir(path.parent)
-
-
-def _fsync_dir(path: Path) -> None:
-    with contextlib.suppress(OSError):  # not every filesystem lets a directory be synced
-        fd = os.open(path, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+# write_atomic lives in utils.atomic (other layers use it too); importable from here as before.
 
 
 def read_sidecar(root: Path) -> dict[str, Any]:

@@ -34,6 +34,7 @@ from so101_sim.dataset.store import (
     recover,
     write_sidecar,
 )
+from so101_sim.utils.locks import LOCK_FILE, clear_folder, has_content
 
 
 class WorkerVideos:
@@ -208,10 +209,26 @@ def _use_worker_videos(ds: Any) -> WorkerVideos:
 
 def _killed_while_creating(root: Path) -> bool:
     """A folder holding only what a run killed before its dataset existed leaves behind."""
-    ours = {"meta", "data", "videos", SIDECAR, COMMIT, SPOOL, SCRATCH}
+    ours = {"meta", "data", "videos", SIDECAR, COMMIT, SPOOL, SCRATCH, LOCK_FILE}
     return (not (root / "meta" / "info.json").exists()
             and all(p.name in ours for p in root.iterdir())
             and not any(p.is_file() for sub in ("data", "videos") for p in (root / sub).rglob("*")))
+
+
+def create_dataset(root: Path, **create_kwargs: Any) -> None:
+    """``LeRobotDataset.create`` + ``finalize`` into `root`, which exists already (it holds the
+    writing run's lock file, and lerobot insists on creating its folder itself): the dataset
+    is made in the scratch folder and its folders are moved in."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    stage = root / SCRATCH / "create"
+    shutil.rmtree(stage, ignore_errors=True)
+    stage.parent.mkdir(parents=True, exist_ok=True)
+    ds = LeRobotDataset.create(root=stage, **create_kwargs)
+    ds.finalize()
+    for sub in sorted(stage.iterdir()):
+        sub.rename(root / sub.name)
+    shutil.rmtree(root / SCRATCH, ignore_errors=True)
 
 
 def open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
@@ -219,11 +236,9 @@ def open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
                  vcodec: str | None, queue_size: int, expert: dict[str, Any]) -> Opened:
     """Create the dataset, or bring it back to its last checkpoint and reopen it; write the
     sidecar. A folder that holds anything needs `resume`."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    exists = root.exists() and any(root.iterdir())
+    exists = has_content(root)  # the run's own lock file does not count
     if exists and resume and _killed_while_creating(root):
-        shutil.rmtree(root)  # nothing was recorded yet: start as if it had never run
+        clear_folder(root)  # nothing was recorded yet: start as if it had never run
         exists = False
     if exists and not resume:
         raise ValueError(f"{root} already exists and is not empty; pass --resume to continue "
@@ -247,14 +262,12 @@ def open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
         next_seed = max([seed_start - 1, *tried]) + 1
         fresh = False
     else:
-        if root.exists():
-            root.rmdir()  # empty: lerobot insists on creating the folder itself
         codec = vcodec or DEFAULT_VCODEC
         encoder = encoder_config(codec)
-        ds = LeRobotDataset.create(repo_id=repo_id, fps=30, root=root, robot_type=ROBOT_TYPE,
-                                   features=dataset_features(image_size, dart_noise > 0),
-                                   use_videos=True, rgb_encoder=encoder)
-        ds.finalize()
+        root.mkdir(parents=True, exist_ok=True)
+        create_dataset(root, repo_id=repo_id, fps=30, robot_type=ROBOT_TYPE,
+                       features=dataset_features(image_size, dart_noise > 0),
+                       use_videos=True, rgb_encoder=encoder)
         tried, failures, next_seed, fresh = [], {}, seed_start, True
     side = {"repo_id": repo_id, "task": task_arg, "image_size": list(image_size),
             "dart_noise": dart_noise, "vcodec": codec, "tried": sorted(set(tried)),

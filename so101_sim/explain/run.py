@@ -11,7 +11,6 @@ preset, the `seed` preset or any other diffusion config. `explain.page` renders 
 from __future__ import annotations
 
 import contextlib
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,6 +25,8 @@ from so101_sim.explain.trace import STATE_KEY, trace
 from so101_sim.train.checkpoint import checkpoint_name, load_checkpoint, read_train_info
 from so101_sim.train.presets import load_preset, make_config, policy_features
 from so101_sim.train.trainer import normalization_stats
+from so101_sim.utils.atomic import write_json_atomic, write_text_atomic
+from so101_sim.utils.locks import hold_folder, lock_scope
 from so101_sim.utils.trust import UntrustedCheckpointError
 
 
@@ -90,6 +91,7 @@ def _fresh_policy(dataset: Any, preset_name: str, seed: int) -> tuple[Any, Any, 
 # ----------------------------------------------------------------------------- main
 
 
+@lock_scope
 def explain(dataset_dir: str | Path, policy_path: str | Path | None = None, episode: int = 0,
             frame: int = 5, k: int = 25, out: str | Path | None = None, preset: str = "seed",
             seed: int = 0, write: bool = True) -> Explanation:
@@ -121,6 +123,9 @@ def explain(dataset_dir: str | Path, policy_path: str | Path | None = None, epis
     if missing:
         raise ExplainError(f"the policy needs {missing}, which {dataset_dir} does not record; "
                            f"it has {sorted(meta.features)}")
+    dest = Path(out) if out else Path("outputs/explain") / f"{info['name']}-ep{episode}-f{frame}"
+    if write:  # one writer per folder, from here to the end
+        hold_folder(dest, "the explanation", again="rerun")
     policy.eval()
     policy.reset()
     fps = meta.fps
@@ -153,11 +158,9 @@ def explain(dataset_dir: str | Path, policy_path: str | Path | None = None, epis
     if write:
         from so101_sim.explain.page import render_page
 
-        dest = Path(out) if out else (Path("outputs/explain") /
-                                      f"{info['name']}-ep{episode}-f{frame}")
         dest.mkdir(parents=True, exist_ok=True)
         result.json_path = dest / "explain.json"
-        result.json_path.write_text(json.dumps(numbers, indent=1) + "\n")
+        write_json_atomic(result.json_path, numbers, indent=1)
         result.html_path = dest / "explain.html"
-        result.html_path.write_text(render_page(numbers, images))
+        write_text_atomic(result.html_path, render_page(numbers, images))
     return result

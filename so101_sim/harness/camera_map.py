@@ -8,7 +8,7 @@ cameras already named like an env camera map to it unless the map says otherwise
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 from so101_sim.tasks import DEFAULT_CAMERAS as CAMERAS
 
@@ -32,8 +32,9 @@ def parse_camera_map(text: str) -> dict[str, str]:
 
 
 def resolve_camera_map(policy_cameras: Iterable[str], camera_map: dict[str, str] | None,
-                       where: str) -> dict[str, str]:
-    """Every camera of the policy -> the env camera that feeds it; errors name the fix."""
+                       where: str, log: Callable[[str], None] = print) -> dict[str, str]:
+    """Every camera of the policy -> the env camera that feeds it; errors name the fix. One
+    env camera feeding several policy cameras is allowed (a one-camera rig), with a note."""
     cams = list(policy_cameras)
     asked = dict(camera_map or {})
     unknown = sorted(set(asked) - set(cams))
@@ -52,9 +53,28 @@ def resolve_camera_map(policy_cameras: Iterable[str], camera_map: dict[str, str]
                              f"{cam}={CAMERAS[0]} (or {cam}={CAMERAS[-1]}), or rename the "
                              "feature")
         out[cam] = env_cam
+    for env_cam, policy_cams in shared_cameras(out).items():
+        log(f"so101-sim eval: note: --camera-map feeds env camera {env_cam} to policy cameras "
+            f"{' and '.join(policy_cams)} (the same image in each): fine for a one-camera "
+            "rig; otherwise map each policy camera to its own env camera")
     return out
 
 
+def shared_cameras(mapping: dict[str, str]) -> dict[str, list[str]]:
+    """Env cameras that feed more than one policy camera -> those policy cameras."""
+    fed: dict[str, list[str]] = {}
+    for p, e in mapping.items():
+        fed.setdefault(e, []).append(p)
+    return {e: ps for e, ps in fed.items() if len(ps) > 1}
+
+
+def shown_camera_map(mapping: dict[str, str]) -> dict[str, str]:
+    """The entries a summary states: renamed cameras, and every camera of a shared one."""
+    shared = shared_cameras(mapping)
+    return {p: e for p, e in mapping.items() if p != e or e in shared}
+
+
 def describe_camera_map(mapping: dict[str, str]) -> str:
-    """ "policy top <- env front, policy wrist <- env side" for the renamed cameras only."""
-    return ", ".join(f"policy {p} <- env {e}" for p, e in mapping.items() if p != e)
+    """ "policy top <- env front, policy wrist <- env side" for the renamed cameras, and for
+    every policy camera of an env camera that feeds several."""
+    return ", ".join(f"policy {p} <- env {e}" for p, e in shown_camera_map(mapping).items())

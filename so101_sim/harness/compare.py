@@ -9,12 +9,14 @@ interval. Runs whose seeds or task differ are refused: their pairs would mean no
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from so101_sim.harness.results import INFO
+from so101_sim.harness.results import INFO, check_eval_info
 from so101_sim.harness.stats import mcnemar_p_value, paired_difference_interval, wilson_interval
+from so101_sim.utils.atomic import write_json_atomic, write_text_atomic
 
 JSON_NAME = "compare.json"
 MARKDOWN_NAME = "compare.md"
@@ -55,6 +57,11 @@ def load_run(path: str | Path) -> RunSide:
             "(an interrupted one is finished with the same arguments plus --resume)")
     try:
         info = json.loads(info_path.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{info_path} is not JSON ({exc}); expected the eval_info.json that "
+                         "`so101-sim eval` writes") from None
+    check_eval_info(info, info_path)  # a hand-edited "success": "no" is not a success
+    try:
         cfg, episodes = info["config"], info["per_episode"]
         success = {int(e["seed"]): bool(e["success"]) for e in episodes}
         shas = {int(e["seed"]): e.get("actions_sha") for e in episodes}
@@ -91,8 +98,13 @@ def check_comparable(a: RunSide, b: RunSide) -> None:
                          "--seed-start and --episodes")
 
 
-def compare_runs(run_a: str | Path, run_b: str | Path) -> dict[str, Any]:
-    """The paired comparison of two eval folders as a JSON-able dict (see module docstring)."""
+def compare_runs(run_a: str | Path, run_b: str | Path,
+                 log: Callable[[str], None] = print) -> dict[str, Any]:
+    """The paired comparison of two eval folders as a JSON-able dict (see module docstring).
+    Comparing a folder with itself is allowed (a smoke test) but said, in one line."""
+    if Path(run_a).resolve() == Path(run_b).resolve():
+        log(f"so101-sim compare: warning: A and B are the same folder ({run_a}); every seed "
+            "agrees with itself, so this says nothing about the policy: pass two eval folders")
     a, b = load_run(run_a), load_run(run_b)
     check_comparable(a, b)
     return paired_result(a, b)
@@ -200,7 +212,10 @@ def _seed_list(seeds: list[int], limit: int = 30) -> str:
 def write_comparison(r: dict[str, Any], out_dir: str | Path) -> tuple[Path, Path]:
     """compare.json and compare.md in `out_dir`; returns their paths."""
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"compare --out {out} is a file; expected a folder for {JSON_NAME} "
+                         f"and {MARKDOWN_NAME}: choose another --out (or leave it out)")
     out.mkdir(parents=True, exist_ok=True)
-    (out / JSON_NAME).write_text(json.dumps(r, indent=2) + "\n")
-    (out / MARKDOWN_NAME).write_text(markdown(r))
+    write_json_atomic(out / JSON_NAME, r)
+    write_text_atomic(out / MARKDOWN_NAME, markdown(r))
     return out / JSON_NAME, out / MARKDOWN_NAME

@@ -17,8 +17,11 @@ from typing import Any
 
 from so101_sim.harness.stats import wilson_interval
 from so101_sim.train.checkpoint import read_train_info
+from so101_sim.utils.atomic import append_line
+from so101_sim.utils.locks import folder_lock
 
 CURVE_FILE = "eval_curve.jsonl"
+CURVE_LOCK = ".so101-curve.lock"  # not train's lock: a curve may run while training goes on
 _STEP = re.compile(r"step_(\d+)$")
 
 
@@ -48,14 +51,25 @@ def read_curve(run: Path) -> list[dict[str, Any]]:
 def evaluate_curve(run: str | Path, *, episodes: int = 32, every: int = 0, n_envs: int = 8,
                    seed_start: int = 100_000, steps: list[int] | None = None,
                    progress: bool = True) -> list[dict[str, Any]]:
-    """Evaluate the run's checkpoints not yet in its curve file; return the whole curve."""
-    from so101_sim.harness.runner import evaluate
-
+    """Evaluate the run's checkpoints not yet in its curve file; return the whole curve.
+    Two curves of one run at once are refused (a training run may go on beside it)."""
     run = Path(run)
     checkpoints = run_checkpoints(run)
     if not checkpoints:
         raise ValueError(f"{run} holds no checkpoints/step_*/pretrained_model; pass the --out "
                          "folder of a `so101-sim train` run")
+    with folder_lock(run, "the learning curve", again="rerun", name=CURVE_LOCK):
+        _evaluate_missing(run, checkpoints, episodes, every, n_envs, seed_start, steps,
+                          progress)
+    return [r for r in read_curve(run)
+            if r.get("episodes") == episodes and r.get("seed_start") == seed_start]
+
+
+def _evaluate_missing(run: Path, checkpoints: list[tuple[int, Path]], episodes: int,
+                      every: int, n_envs: int, seed_start: int, steps: list[int] | None,
+                      progress: bool) -> None:
+    from so101_sim.harness.runner import evaluate
+
     done = {r["step"] for r in read_curve(run) if r.get("episodes") == episodes
             and r.get("seed_start") == seed_start}
     chosen = [(s, p) for s, p in checkpoints
@@ -74,10 +88,7 @@ def evaluate_curve(run: str | Path, *, episodes: int = 32, every: int = 0, n_env
                "episodes": episodes, "seed_start": seed_start, "successes": k,
                "success": k / episodes, "ci95": [round(lo, 4), round(hi, 4)],
                "failure_modes": agg.get("failure_modes", {})}
-        with (run / CURVE_FILE).open("a") as f:
-            f.write(json.dumps(row) + "\n")
-    return [r for r in read_curve(run)
-            if r.get("episodes") == episodes and r.get("seed_start") == seed_start]
+        append_line(run / CURVE_FILE, json.dumps(row))
 
 
 def plot_curve(rows: list[dict[str, Any]], dest: Path, title: str = "") -> Path:

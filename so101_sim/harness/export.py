@@ -12,7 +12,9 @@ import shutil
 from pathlib import Path
 
 from so101_sim.harness.curve import plot_curve, read_curve
+from so101_sim.harness.results import INFO, check_eval_info
 from so101_sim.train.checkpoint import TRAIN_INFO
+from so101_sim.utils.locks import folder_lock
 from so101_sim.utils.trust import check_processor_files
 
 
@@ -134,25 +136,42 @@ def export_policy(checkpoint: Path, dest: Path, eval_dir: Path | None = None,
                                 f"model.safetensors and {TRAIN_INFO}); pass a "
                                 "checkpoints/step_*/pretrained_model folder")
     check_processor_files(checkpoint)  # never ship a file that would run code when loaded
+    # `dest` is replaced whole, so its lock lives beside it (in its parent folder)
+    with folder_lock(dest.parent, f"the export {dest.name}", again="rerun",
+                     name=f".{dest.name}.export.lock"):
+        return _export(checkpoint, dest, info_path, eval_dir, hardware, also_eval)
+
+
+def _export(checkpoint: Path, dest: Path, info_path: Path, eval_dir: Path | None,
+            hardware: str, also_eval: list[Path] | None) -> Path:
+    def read_eval(folder: Path) -> dict:
+        path = Path(folder) / INFO
+        data = json.loads(path.read_text())
+        check_eval_info(data, path)  # the card's numbers must be what eval wrote
+        return data
+
+    info = json.loads(info_path.read_text())
+    eval_info = read_eval(eval_dir) if eval_dir is not None else None
+    also = [read_eval(d) for d in also_eval or []]
     tmp = dest.with_name(dest.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
-    shutil.copytree(checkpoint, tmp, ignore=shutil.ignore_patterns("model.safetensors"))
-    _fp16_copy(checkpoint / "model.safetensors", tmp / "model.safetensors")
-    info = json.loads(info_path.read_text())
-    eval_info = None
-    if eval_dir is not None:
-        eval_info = json.loads((Path(eval_dir) / "eval_info.json").read_text())
-        shutil.copy(Path(eval_dir) / "eval_info.json", tmp / "eval_info.json")
-    log = checkpoint.parents[2] / "train_log.jsonl"
-    curve = loss_curve(log) if log.is_file() else []
-    curve = [r for r in curve if r["step"] <= info["step"]]
-    also = [json.loads((Path(d) / "eval_info.json").read_text()) for d in also_eval or []]
-    run = checkpoint.parents[2]
-    success_curve = [r for r in read_curve(run) if r["step"] <= info["step"]]
-    if success_curve:
-        plot_curve(success_curve, tmp / "curve.png")
-    (tmp / "README.md").write_text(model_card(info, eval_info, curve, hardware, also,
-                                              success_curve))
+    try:
+        shutil.copytree(checkpoint, tmp, ignore=shutil.ignore_patterns("model.safetensors"))
+        _fp16_copy(checkpoint / "model.safetensors", tmp / "model.safetensors")
+        if eval_dir is not None:
+            shutil.copy(Path(eval_dir) / INFO, tmp / INFO)
+        log = checkpoint.parents[2] / "train_log.jsonl"
+        curve = loss_curve(log) if log.is_file() else []
+        curve = [r for r in curve if r["step"] <= info["step"]]
+        run = checkpoint.parents[2]
+        success_curve = [r for r in read_curve(run) if r["step"] <= info["step"]]
+        if success_curve:
+            plot_curve(success_curve, tmp / "curve.png")
+        (tmp / "README.md").write_text(model_card(info, eval_info, curve, hardware, also,
+                                                  success_curve))
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)  # a full disk: free what this run took
+        raise
     shutil.rmtree(dest, ignore_errors=True)
     tmp.rename(dest)
     return dest

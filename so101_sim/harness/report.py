@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from so101_sim.harness.results import EpisodeRecord
+from so101_sim.utils.atomic import write_text_atomic
 
 
 def write_report(out_dir: str | Path, result: dict[str, Any],
@@ -48,7 +49,7 @@ def write_report(out_dir: str | Path, result: dict[str, Any],
         lines += [f"- [{Path(p).name}]({os.path.relpath(Path(p).resolve(), out.resolve())})"
                   for p in cfg["video_paths"]]
     path = out / "report.md"
-    path.write_text("\n".join(lines) + "\n")
+    write_text_atomic(path, "\n".join(lines) + "\n")
     return path
 
 

@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import json
 from collections import Counter
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
 from so101_sim.harness.stats import wilson_interval
+from so101_sim.utils.atomic import append_line, drop_torn_tail, read_jsonl, write_json_atomic
+from so101_sim.utils.locks import hold_folder
 
 EPISODES = "episodes.jsonl"
 CONFIG = "eval_config.json"
@@ -80,45 +82,135 @@ class RunDir:
                                  + "; ".join(diff) + "); use the same arguments as that run, "
                                  "or a new --out")
         self.path.mkdir(parents=True, exist_ok=True)
-        self.config_path.write_text(json.dumps(identity, indent=2) + "\n")
+        write_json_atomic(self.config_path, identity)
         if resume:
-            self._drop_torn_tail()
+            drop_torn_tail(self.episodes_path)  # the next record starts on a line of its own
         return self.done() if resume else {}
 
-    def _drop_torn_tail(self) -> None:
-        """Cut a last line that a kill left unfinished (no newline), so the next record
-        starts on a line of its own instead of being glued to the fragment."""
-        if not self.episodes_path.exists():
-            return
-        data = self.episodes_path.read_bytes()
-        if data and not data.endswith(b"\n"):
-            with self.episodes_path.open("r+b") as f:
-                f.truncate(data.rfind(b"\n") + 1)
-
     def done(self) -> dict[int, EpisodeRecord]:
-        """Finished episodes by seed (a torn last line from a killed run is skipped)."""
+        """Finished episodes by seed (a torn last line from a killed run is dropped; a line
+        with a wrong key or value is refused, naming the file, line and key)."""
         out: dict[int, EpisodeRecord] = {}
-        if not self.episodes_path.exists():
-            return out
-        for line in self.episodes_path.read_text().splitlines():
-            try:
-                rec = EpisodeRecord(**json.loads(line))
-            except (json.JSONDecodeError, TypeError):
-                continue
+        try:
+            rows = read_jsonl(self.episodes_path)
+        except ValueError as exc:
+            raise ValueError(f"{exc} (its episode runs again on --resume)") from None
+        for n, row in enumerate(rows, 1):
+            rec = check_record(row, f"{self.episodes_path} line {n}")
             if rec.status == "ok":
                 out[rec.seed] = rec
         return out
 
     def append(self, rec: EpisodeRecord) -> None:
-        with self.episodes_path.open("a") as f:
-            f.write(json.dumps(asdict(rec)) + "\n")
-            f.flush()
+        """One line per episode, synced: a kill keeps it whole or only cuts this line."""
+        append_line(self.episodes_path, json.dumps(asdict(rec)))
 
     def video_path(self, episode_ix: int, seed: int) -> Path:
         return self.videos_dir / f"episode_{episode_ix:04d}_seed{seed}.mp4"
 
     def write_info(self, info: dict[str, Any]) -> None:
-        self.info_path.write_text(json.dumps(info, indent=2) + "\n")
+        write_json_atomic(self.info_path, info)
+
+
+def lock_eval_folders(out: Path, save_rollouts: str | Path | None) -> None:
+    """Hold the evaluation folder (and the rollout dataset's) for the rest of the
+    ``@lock_scope`` call: a second run into either is refused before it writes anything. A
+    run that fails before its first episode leaves no folder it created behind."""
+    hold_folder(out, "the evaluation", stub=(CONFIG,))
+    if save_rollouts is not None:
+        hold_folder(Path(save_rollouts).expanduser(), "the rollout dataset")
+
+
+_NUMBERS = ("sum_reward", "max_reward", "seconds", "physics_s", "render_s", "policy_s")
+_TEXTS = ("failure_mode", "video", "actions_sha", "error")
+
+
+def value_problem(key: str, value: Any) -> str | None:
+    """What an episode's `key` should hold, if `value` does not (None when it is fine)."""
+    is_int = isinstance(value, int) and not isinstance(value, bool)
+    if key == "seed":
+        return None if is_int and 0 <= value < 2**32 else "an integer seed 0..2**32-1"
+    if key in ("episode_ix", "steps"):
+        return None if is_int and value >= 0 else "an integer >= 0"
+    if key == "status":
+        return None if value in ("ok", "error") else '"ok" or "error"'
+    if key == "success":
+        return None if isinstance(value, bool) else "true or false (JSON booleans)"
+    if key in _NUMBERS:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        return None if ok else "a number"
+    if key in _TEXTS:
+        return None if value is None or isinstance(value, str) else "a string or null"
+    return None
+
+
+def check_record(row: Any, where: str) -> EpisodeRecord:
+    """An episodes.jsonl line as a record, or ValueError naming `where`, the key and what it
+    should hold (a hand-edited ``"success": "no"`` must not count as a success)."""
+    if not isinstance(row, dict):
+        raise ValueError(f"{where} is {type(row).__name__}; expected a JSON object (one "
+                         "episode); fix or delete that line")
+    known = {f.name for f in fields(EpisodeRecord)}
+    unknown = sorted(set(row) - known)
+    missing = [k for k in ("seed", "episode_ix") if k not in row]
+    if unknown or missing:
+        raise ValueError(f"{where}: {'unknown keys ' + str(unknown) if unknown else ''}"
+                         f"{'; ' if unknown and missing else ''}"
+                         f"{'missing ' + str(missing) if missing else ''}; expected the keys "
+                         f"{sorted(known)}; fix or delete that line")
+    for key, value in row.items():
+        want = value_problem(key, value)
+        if want:
+            raise ValueError(f"{where}: {key} = {value!r} is invalid; expected {want}; fix "
+                             "or delete that line (its episode runs again on --resume)")
+    return EpisodeRecord(**row)
+
+
+def check_eval_info(info: Any, path: Path) -> None:
+    """Refuse an ``eval_info.json`` whose values a reader would misread: types, seeds outside
+    the run's range or twice, counts that disagree with its episodes (or its episodes.jsonl).
+    The message names the file and the key; ``eval --resume`` with the run's arguments
+    writes the file again from episodes.jsonl."""
+    fix = ("it was edited or is not from so101-sim eval; rerun the evaluation with its "
+           "arguments plus --resume to rewrite it from episodes.jsonl")
+
+    def bad(key: str, value: Any, want: str) -> ValueError:
+        return ValueError(f"{path}: {key} = {value!r} is invalid; expected {want}; {fix}")
+
+    if not isinstance(info, dict):
+        raise bad("(top level)", type(info).__name__, "a JSON object")
+    for key, typ in (("config", dict), ("per_episode", list), ("aggregated", dict)):
+        value = info.get(key, {} if key == "aggregated" else None)  # aggregated: optional
+        if not isinstance(value, typ):
+            raise bad(key, value, f"a JSON {'object' if typ is dict else 'list'}")
+    cfg, agg = info["config"], info.get("aggregated", {})
+    start, n = cfg.get("seed_start"), cfg.get("episodes")
+    seen: dict[int, bool] = {}
+    for i, e in enumerate(info["per_episode"]):
+        if not isinstance(e, dict):
+            raise bad(f"per_episode[{i}]", e, "a JSON object")
+        for key in ("seed", "success", "steps", "failure_mode", "actions_sha"):
+            want = value_problem(key, e.get(key)) if key in e or key in ("seed", "success") \
+                else None
+            if want:
+                raise bad(f"per_episode[{i}].{key}", e.get(key), want)
+        seed = e["seed"]
+        if isinstance(start, int) and isinstance(n, int) and not start <= seed < start + n:
+            raise bad(f"per_episode[{i}].seed", seed, f"a seed in {start}..{start + n - 1} "
+                      "(config.seed_start, config.episodes)")
+        if seed in seen:
+            raise bad(f"per_episode[{i}].seed", seed, "each seed once")
+        seen[seed] = e["success"]
+    for key, count in (("n_episodes", len(seen)), ("n_success", sum(seen.values()))):
+        if key in agg and agg[key] != count:
+            raise bad(f"aggregated.{key}", agg[key], f"{count}, as per_episode has it")
+    log = path.parent / EPISODES
+    if log.is_file():
+        logged = RunDir(path.parent).done()
+        for seed, success in seen.items():
+            if seed in logged and logged[seed].success != success:
+                raise ValueError(f"{path}: per_episode seed {seed} has success = {success}, "
+                                 f"but {log} has {logged[seed].success}; {fix}")
 
 
 def aggregate(records: list[EpisodeRecord], eval_s: float, n_run: int) -> dict[str, Any]:

@@ -60,8 +60,9 @@ def _started_here(root: Path) -> bool:
     """A folder a run killed before its first checkpoint leaves (no episode in it: starting
     afresh loses nothing)."""
     from so101_sim.dataset.store import COMMIT, SCRATCH, SIDECAR, SPOOL
+    from so101_sim.utils.locks import LOCK_FILE
 
-    ours = {"meta", "data", "videos", SIDECAR, COMMIT, SPOOL, SCRATCH}
+    ours = {"meta", "data", "videos", SIDECAR, COMMIT, SPOOL, SCRATCH, LOCK_FILE}
     return (not (root / COMMIT).exists() and all(p.name in ours for p in root.iterdir())
             and not any(p.is_file() for sub in ("data", "videos") for p in (root / sub).rglob("*")))
 
@@ -94,12 +95,13 @@ class RolloutSink:
         """Refuse a folder that is not this run's (before anything is written); return
         whether it holds this run's dataset to resume."""
         from so101_sim.dataset.store import read_sidecar
+        from so101_sim.utils.locks import has_content
 
         root = self.root
         if root.exists() and not root.is_dir():
             raise ValueError(f"--save-rollouts {root} is a file; expected a folder for the "
                              "rollout dataset (a new one, or this run's when resuming)")
-        if not (root.exists() and any(root.iterdir())) or (resume and _started_here(root)):
+        if not has_content(root) or (resume and _started_here(root)):
             return False
         if not resume:
             raise ValueError(f"--save-rollouts {root} already exists and is not empty; expected "
@@ -139,18 +141,17 @@ class RolloutSink:
             self.side = read_sidecar(root)
             encoder = encoder_config(self.side["vcodec"], info_features(root))
         else:
-            from lerobot.datasets.lerobot_dataset import LeRobotDataset
+            from so101_sim.dataset.writer import create_dataset
+            from so101_sim.utils.locks import clear_folder
 
-            if root.exists():
-                shutil.rmtree(root)  # empty, or a start killed before its first checkpoint
-            root.parent.mkdir(parents=True, exist_ok=True)
+            if root.exists():  # empty, or a start killed before its first checkpoint
+                clear_folder(root)  # (its lock file stays: this run holds it)
+            root.mkdir(parents=True, exist_ok=True)
             self.side = {**self.side, "vcodec": DEFAULT_VCODEC}
             encoder = encoder_config(DEFAULT_VCODEC)
-            ds = LeRobotDataset.create(
-                repo_id=self.side["repo_id"], fps=spec.fps, root=root, robot_type=ROBOT_TYPE,
-                features=rollout_features(self.image_size, spec.cameras), use_videos=True,
-                rgb_encoder=encoder)
-            ds.finalize()
+            create_dataset(root, repo_id=self.side["repo_id"], fps=spec.fps,
+                           robot_type=ROBOT_TYPE, use_videos=True, rgb_encoder=encoder,
+                           features=rollout_features(self.image_size, spec.cameras))
             write_sidecar(root, self.side)
             checkpoint(root, self.side)  # the empty dataset: what a kill before any episode
         stored = stored_seeds(root)

@@ -30,9 +30,16 @@ from so101_sim.dataset import EVAL_SEED_START
 from so101_sim.harness.env_worker import EnvWorkerConfig
 from so101_sim.harness.frames import Rendering, choose_rendering, to_policy_obs
 from so101_sim.harness.policies import ChunkRequest, EvalPolicy, load_policy
-from so101_sim.harness.results import EpisodeRecord, RunDir, aggregate, per_episode
+from so101_sim.harness.results import (
+    EpisodeRecord,
+    RunDir,
+    aggregate,
+    lock_eval_folders,
+    per_episode,
+)
 from so101_sim.tasks import TaskSpec, load_task, task_ref
 from so101_sim.utils.devices import eval_policy_threads, torch_threads
+from so101_sim.utils.locks import lock_scope
 from so101_sim.workers import PoolInfo, Reply, check_backend, start_pool
 
 
@@ -52,6 +59,7 @@ class _Slot:
     policy_s: float = 0.0
 
 
+@lock_scope  # releases the folder locks lock_eval_folders takes
 def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_place",
              episodes: int = 50,
              n_envs: int = 16, seed_start: int = EVAL_SEED_START, out_dir: str | Path | None = None,
@@ -98,6 +106,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
         stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
         out_dir = Path("outputs/eval") / f"{info.name}-{spec.name}-{stamp}"
     run = RunDir(out_dir)
+    lock_eval_folders(run.path, save_rollouts)  # another run writing them: refused here
     identity = {
         "policy": info.name, "policy_fingerprint": info.fingerprint, "task": spec.name,
         "task_sha256": hashlib.sha256(json.dumps(

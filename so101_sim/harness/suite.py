@@ -10,7 +10,6 @@ failure modes added to each; one table is printed.
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable, Sequence
 from datetime import datetime
@@ -19,6 +18,7 @@ from typing import Any
 
 from so101_sim.harness.stats import wilson_interval
 from so101_sim.tasks import available_tasks, load_task
+from so101_sim.utils.atomic import write_json_atomic
 
 SUITE_INFO = "eval_info.json"
 
@@ -78,7 +78,7 @@ def evaluate_suite(policy: str, tasks: Sequence[str], *,
         results[name] = evaluate(loaded, task=spec, out_dir=out / name, log=log, **kwargs)
     info = suite_info(results, time.perf_counter() - t0, out, str(policy))
     out.mkdir(parents=True, exist_ok=True)
-    (out / SUITE_INFO).write_text(json.dumps(info, indent=2) + "\n")
+    write_json_atomic(out / SUITE_INFO, info)
     for line in suite_table(info):
         log(line)
     log(f"-> {out / SUITE_INFO}")

@@ -34,6 +34,7 @@ from so101_sim.sim import SO101Env
 from so101_sim.sim.rendering import select_gl_backend
 from so101_sim.tasks import load_task
 from so101_sim.utils.devices import cpu_count
+from so101_sim.utils.locks import folder_lock
 from so101_sim.utils.video_backend import quiet_libav
 from so101_sim.workers import check_backend
 
@@ -106,21 +107,22 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path = "pick_place"
     select_gl_backend()  # choose (and print) once here: workers inherit MUJOCO_GL
     root = Path(out_dir)
     image_size = (int(image_size[0]), int(image_size[1]))
-    task_arg = _task_arg(task, root, resume)
-    spec = load_task(task_arg)
-    if spec.fps != 30:
-        raise ValueError(f"task fps is {spec.fps}; the dataset is recorded at 30 fps")
-    cpu0 = time.process_time()
-    opened = open_dataset(root, resume, repo_id, task_arg, image_size, seed_start, dart_noise,
-                          vcodec, spec.max_steps + 2, expert)
-    side = opened.side
-    tally = Tally(root, side, opened.ds.meta.total_episodes, n_episodes, progress)
-    worker_spec = RecorderSpec(spec, image_size, side["dart_noise"], side["expert"],
-                               keep_failures, opened.encoder_kwargs, spec.max_steps + 2,
-                               str((root / SCRATCH).resolve()))
-    record_episodes(opened, tally, worker_spec, workers, backend, ray_address,
-                    checkpoint_every, spec.description)
-    tally.cpu_seconds += time.process_time() - cpu0
+    with folder_lock(root, "the dataset"):  # one writer; taken before anything is written
+        task_arg = _task_arg(task, root, resume)
+        spec = load_task(task_arg)
+        if spec.fps != 30:
+            raise ValueError(f"task fps is {spec.fps}; the dataset is recorded at 30 fps")
+        cpu0 = time.process_time()
+        opened = open_dataset(root, resume, repo_id, task_arg, image_size, seed_start,
+                              dart_noise, vcodec, spec.max_steps + 2, expert)
+        side = opened.side
+        tally = Tally(root, side, opened.ds.meta.total_episodes, n_episodes, progress)
+        worker_spec = RecorderSpec(spec, image_size, side["dart_noise"], side["expert"],
+                                   keep_failures, opened.encoder_kwargs, spec.max_steps + 2,
+                                   str((root / SCRATCH).resolve()))
+        record_episodes(opened, tally, worker_spec, workers, backend, ray_address,
+                        checkpoint_every, spec.description)
+        tally.cpu_seconds += time.process_time() - cpu0
     return tally.summary(workers, backend)
 
 

@@ -19,6 +19,7 @@ from typing import Any
 
 from so101_sim.tasks.kind import get_kind, registered_kinds
 from so101_sim.tasks.randomization import Randomization, parse_randomize
+from so101_sim.tasks.workspace import check_ranges
 from so101_sim.utils.paths import envs_dir
 
 Range = tuple[float, float]
@@ -291,6 +292,9 @@ def parse_task(raw: dict[str, Any], source: str = "<dict>") -> TaskSpec:
         raise TaskSpecError(f"{source}: cube.size = {spec.cube_size} is invalid; expected "
                             "0.01 .. 0.05 m (the gripper opens to about 6 cm)")
     _check_kind(spec, source)
+    problem = check_ranges(spec, has_target="target" in raw)  # on the table, in reach
+    if problem:
+        raise TaskSpecError(f"{source}: {problem}")
     return spec
 
 

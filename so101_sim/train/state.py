@@ -7,19 +7,60 @@ checks a resume makes before it continues (same architecture, a clean log).
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import pickle
+import shutil
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from so101_sim.train.checkpoint import TRAIN_INFO
 from so101_sim.train.presets import Preset
+from so101_sim.utils.atomic import write_text_atomic
 
 
 class TrainError(RuntimeError):
     """Bad training input (dataset, preset, run folder)."""
+
+
+def save_ema_policy(policy: Any, ema: Any, pre: Any, post: Any, dest: Path,
+                    info: dict[str, Any]) -> None:
+    """EMA weights in lerobot's pretrained format, written whole (a temporary folder renamed)."""
+    tmp = dest.with_name(dest.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shadow = copy.deepcopy(policy)
+    ema.copy_to(shadow.parameters())
+    shadow.save_pretrained(tmp)
+    pre.save_pretrained(tmp)
+    post.save_pretrained(tmp)
+    (tmp / TRAIN_INFO).write_text(json.dumps(info, indent=2) + "\n")
+    shutil.rmtree(dest, ignore_errors=True)
+    tmp.rename(dest)
+
+
+def discard_partial_checkpoint(ck: Path) -> None:
+    """After a failed save (a full disk): free what it wrote. A folder without its
+    training_state.pt is no checkpoint, so the previous one stays the one --resume uses."""
+    shutil.rmtree(ck / "pretrained_model.tmp", ignore_errors=True)
+    (ck / "training_state.tmp").unlink(missing_ok=True)
+    if not (ck / "training_state.pt").exists():
+        shutil.rmtree(ck, ignore_errors=True)
+
+
+def copy_policy(src: Path, dest: Path) -> None:
+    """Copy a pretrained_model folder to `dest`, replacing it only once the copy is whole."""
+    tmp = dest.with_name(dest.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        shutil.copytree(src, tmp)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    shutil.rmtree(dest, ignore_errors=True)
+    tmp.rename(dest)
 
 
 def list_checkpoints(out: Path) -> list[Path]:
@@ -76,4 +117,4 @@ def truncate_log(path: Path, step: int) -> None:
             continue
         if isinstance(rec, dict) and rec.get("step", math.inf) <= step:
             keep.append(ln)
-    path.write_text("".join(ln + "\n" for ln in keep))
+    write_text_atomic(path, "".join(ln + "\n" for ln in keep))

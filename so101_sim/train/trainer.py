@@ -18,10 +18,9 @@ Run layout under `out/`:
 
 from __future__ import annotations
 
-import copy
 import json
 import math
-import shutil
+import os
 import signal
 import time
 from dataclasses import asdict, dataclass
@@ -37,19 +36,22 @@ import torch
 from tqdm import tqdm
 
 from so101_sim.dataset.reader import NotADatasetError, open_lerobot_dataset
-from so101_sim.train.checkpoint import TRAIN_INFO
 from so101_sim.train.frame_cache import load_frames
 from so101_sim.train.presets import Preset, load_preset, make_config, policy_features
 from so101_sim.train.state import (
     TrainError,
     architecture,
     check_same_architecture,
+    copy_policy,
+    discard_partial_checkpoint,
     list_checkpoints,
     load_training_state,
+    save_ema_policy,
     truncate_log,
 )
 from so101_sim.train.threads import AdaptiveThreads, BatchParts
 from so101_sim.utils.devices import resolve_device, resolve_precision
+from so101_sim.utils.locks import hold_folder, lock_scope
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -146,20 +148,7 @@ class TrainResult:
 
 
 
-def _save_pretrained(policy, ema, pre, post, dest: Path, info: dict) -> None:
-    """EMA weights in lerobot's pretrained format, written atomically."""
-    tmp = dest.with_name(dest.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    shadow = copy.deepcopy(policy)
-    ema.copy_to(shadow.parameters())
-    shadow.save_pretrained(tmp)
-    pre.save_pretrained(tmp)
-    post.save_pretrained(tmp)
-    (tmp / TRAIN_INFO).write_text(json.dumps(info, indent=2) + "\n")
-    shutil.rmtree(dest, ignore_errors=True)
-    tmp.rename(dest)
-
-
+@lock_scope  # releases the run folder's lock (hold_folder below)
 def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | None = None,
           batch_size: int | None = None, resume: bool = False, keep_checkpoints: int = 3,
           progress: bool = True, log_every: int | None = None,
@@ -198,13 +187,15 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                          "to pause at, at most the run's total steps")
     end = steps if stop_at is None else stop_at
     out = Path(out)
+    existed = out.exists()
+    hold_folder(out, "the training run",  # one writer: a second run is refused here
+                again=lambda: "resume" if list_checkpoints(out) else "rerun")
     existing = list_checkpoints(out)
     if existing and not resume:
         raise TrainError(f"{out} already holds checkpoints (last {existing[-1].name}); pass "
                          "--resume to continue that run or choose another --out")
     if resume and not existing:
-        what = ("does not exist" if not out.exists()
-                else "holds no checkpoint with a training_state.pt")
+        what = "does not exist" if not existed else "holds no checkpoint with a training_state.pt"
         raise TrainError(f"--resume: {out} {what}, so there is nothing to continue; check --out, "
                          "or start a new run without --resume")
     try:
@@ -298,15 +289,21 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
         ck = out / "checkpoints" / f"step_{at_step:07d}"
         ck.mkdir(parents=True, exist_ok=True)
         meta = {**info, "step": at_step, "train_wall_s": round(wall, 1), "last_loss": loss}
-        _save_pretrained(policy, ema, pre, post, ck / "pretrained_model", meta)
-        torch.save({"model": policy.state_dict(), "optimizer": optimizer.state_dict(),
-                    "scheduler": scheduler.state_dict(), "ema": ema.state_dict(),
-                    "torch_rng": torch.get_rng_state(), "numpy_rng": rng.bit_generator.state,
-                    **({"cuda_rng": torch.cuda.get_rng_state()} if device == "cuda" else {}),
-                    "step": at_step, "steps": steps, "wall_s": wall, "preset": preset.name,
-                    "precision_history": precision_history,
-                    "preset_arch": architecture(preset),
-                    "dataset": str(Path(dataset_dir).resolve())}, ck / "training_state.tmp")
+        try:
+            save_ema_policy(policy, ema, pre, post, ck / "pretrained_model", meta)
+            torch.save({"model": policy.state_dict(), "optimizer": optimizer.state_dict(),
+                        "scheduler": scheduler.state_dict(), "ema": ema.state_dict(),
+                        "torch_rng": torch.get_rng_state(),
+                        "numpy_rng": rng.bit_generator.state,
+                        **({"cuda_rng": torch.cuda.get_rng_state()} if device == "cuda"
+                           else {}),
+                        "step": at_step, "steps": steps, "wall_s": wall,
+                        "preset": preset.name, "precision_history": precision_history,
+                        "preset_arch": architecture(preset),
+                        "dataset": str(Path(dataset_dir).resolve())}, ck / "training_state.tmp")
+        except BaseException:
+            discard_partial_checkpoint(ck)  # the previous checkpoint stays the last one
+            raise
         (ck / "training_state.tmp").replace(ck / "training_state.pt")
         for old_ck in list_checkpoints(out)[:-keep_checkpoints]:
             (old_ck / "training_state.pt").unlink()  # keep its EMA policy, drop the bulk
@@ -352,6 +349,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                                       "wall_s": round(wall_before + time.perf_counter() - t0, 1)})
                           + "\n")
                 log.flush()
+                os.fsync(log.fileno())  # whole lines on disk; a torn one is dropped on resume
                 bar.set_postfix(loss=f"{mean_loss:.4f}", samples_s=f"{sps:.1f}")
                 window.clear()
             bar.update(1)
@@ -371,8 +369,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     final = ck / "pretrained_model"
     if step == steps:  # the run's own policy; a pause at --stop-at leaves only its checkpoint
         final = out / "pretrained_model"
-        shutil.rmtree(final, ignore_errors=True)
-        shutil.copytree(ck / "pretrained_model", final)
+        copy_policy(ck / "pretrained_model", final)
     run_s = time.perf_counter() - t0
     return TrainResult(out=out, step=step, final_loss=loss_val, wall_s=wall,
                        samples_per_s=(step - start_step) * batch_size / max(run_s, 1e-9),

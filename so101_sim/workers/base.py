@@ -6,6 +6,8 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Any
 
+from so101_sim.workers.ray_connect import probe_address
+
 BACKENDS = ("local", "ray")
 RAY_INSTALL_HINT = "pip install 'so101-sim[ray]' (or: pip install ray)"
 
@@ -103,12 +105,15 @@ class WorkerPool(ABC):
 
 
 def check_backend(backend: str, ray_address: str | None) -> None:
-    """Refuse an unknown backend, or a Ray address given to the local backend."""
+    """Refuse an unknown backend, a Ray address given to the local backend, or one where no
+    cluster answers (``ray_connect.probe_address``)."""
     if backend not in BACKENDS:
         raise ValueError(f"backend={backend!r} is not known; expected one of {list(BACKENDS)} "
                          "(--backend local runs processes here, --backend ray runs Ray actors)")
     if ray_address is not None and backend != "ray":
         raise ValueError(f"--ray-address {ray_address} only applies with --backend ray; add "
                          "--backend ray, or drop --ray-address")
+    if ray_address is not None:  # before any folder is written: a cluster that isn't there
+        probe_address(ray_address)  # is one line, in bounded time
 
 

@@ -6,7 +6,10 @@ cluster has fewer CPUs than workers, as the local backend oversubscribes a small
 actors are spread over the nodes, and each builds its service, hence its GL context, inside
 itself after it starts. Replies (frames, encoded episodes) travel through Ray's object store.
 Actors are not restarted by Ray: a dead or hung one is killed and replaced here, and the
-calls it owed come back as ``died`` so the caller re-runs that work.
+calls it owed come back as ``died`` so the caller re-runs that work. When a node leaves, its
+actors' replacements run on the remaining nodes without a CPU reservation (oversubscribed),
+so the run finishes there. Connecting is bounded and interruptible (``ray_connect``), and
+every wait here is cut into 1 s slices so Ctrl-C and SIGTERM are handled at every stage.
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
+import sys
 import time
 import traceback
 from collections import deque
@@ -22,6 +27,13 @@ from typing import Any
 
 from so101_sim.utils.devices import cpu_count
 from so101_sim.workers.base import RAY_INSTALL_HINT, PoolInfo, Reply, WorkerPool
+from so101_sim.workers.ray_connect import (
+    RayAddressError,
+    bounded_init,
+    connect_timeout,
+    init_holding_signals,
+    probe_address,
+)
 
 #: Environment the actors need, copied from the driver: GL backend, offline hub, threads.
 FORWARDED_ENV = ("MUJOCO_GL", "PYOPENGL_PLATFORM", "HF_HUB_OFFLINE", "OMP_WAIT_POLICY")
@@ -70,10 +82,20 @@ def connect(address: str | None, workers: int) -> bool:
     kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False,
                               "logging_level": logging.WARNING}
     try:
-        if address is None:
-            ray.init(address="local", num_cpus=cpu_count(), **kwargs)
-        else:
-            ray.init(address=address, **kwargs)
+        if address is None:  # Ctrl-C / SIGTERM wait until it has started, then stop cleanly
+            caught = init_holding_signals(lambda: ray.init(address="local",
+                                                           num_cpus=cpu_count(), **kwargs))
+            if caught is not None:
+                ray.shutdown()
+                if caught == signal.SIGINT:
+                    raise KeyboardInterrupt
+                sys.exit(caught)
+        else:  # bounded, and Ctrl-C / SIGTERM work while it waits (ray_connect)
+            timeout = connect_timeout()
+            probe_address(address, timeout)
+            bounded_init(lambda: ray.init(address=address, **kwargs), address, timeout)
+    except RayAddressError:
+        raise  # one line already
     except (ConnectionError, RuntimeError, ValueError) as exc:
         where = address or "a new local runtime"
         raise RuntimeError(f"could not connect to Ray at {where}: {exc}; start a cluster with "
@@ -91,6 +113,7 @@ class RayPool(WorkerPool):
         self.ray = import_ray()
         self.factory, self.name, self.address = factory, name, address
         self.timeout_s, self.start_timeout_s = timeout_s, start_timeout_s
+        self.log = log
         self._owns_runtime = connect(address, n)
         self._actors: list[Any] = [None] * n
         self._nodes: list[str] = [""] * n
@@ -100,9 +123,11 @@ class RayPool(WorkerPool):
         try:
             self.cpus = self._cpu_share(n, log)
             env = {k: os.environ[k] for k in FORWARDED_ENV if k in os.environ}
-            self._cls = self.ray.remote(WorkerActor).options(
-                num_cpus=self.cpus, max_restarts=0, scheduling_strategy="SPREAD",
-                runtime_env={"env_vars": env} if env else None)
+            self._options = {"num_cpus": self.cpus, "max_restarts": 0,
+                             "scheduling_strategy": "SPREAD",
+                             "runtime_env": {"env_vars": env} if env else None}
+            self._remote = self.ray.remote(WorkerActor)
+            self._cls = self._remote.options(**self._options)
             for i in range(n):
                 self._actors[i] = self._cls.remote(factory)
             for i in range(n):
@@ -130,8 +155,12 @@ class RayPool(WorkerPool):
 
     def _await_ready(self, i: int) -> None:
         ray = self.ray
-        try:
-            self._nodes[i] = ray.get(self._actors[i].ready.remote(), timeout=self.start_timeout_s)
+        ref, deadline = self._actors[i].ready.remote(), time.monotonic() + self.start_timeout_s
+        try:  # in 1 s slices: Ctrl-C and SIGTERM are handled between them
+            while not ray.wait([ref], timeout=min(1.0, max(0.0, deadline - time.monotonic())))[0]:
+                if time.monotonic() >= deadline:
+                    raise ray.exceptions.GetTimeoutError()
+            self._nodes[i] = ray.get(ref)
         except ray.exceptions.GetTimeoutError:
             raise RuntimeError(f"Ray worker {self.name}-{i} was not running after "
                                f"{self.start_timeout_s:.0f} s (cluster resources: "
@@ -161,8 +190,8 @@ class RayPool(WorkerPool):
             # Only the oldest call of each actor: an actor answers its calls in order.
             heads = {self._calls[i][0][0]: i for i in self._since}
             deadline = min(self._since.values()) + self.timeout_s
-            ready, rest = ray.wait(list(heads), num_returns=1,
-                                   timeout=max(0.0, deadline - time.monotonic()))
+            ready, rest = ray.wait(list(heads), num_returns=1,  # short: signals run between
+                                   timeout=min(1.0, max(0.0, deadline - time.monotonic())))
             if ready and rest:  # and whatever else is done already: fuller policy batches
                 ready += ray.wait(rest, num_returns=len(rest), timeout=0)[0]
             for ref in ready:
@@ -198,8 +227,23 @@ class RayPool(WorkerPool):
         self._calls[worker].clear()
         self._since.pop(worker, None)
         self._restarts += 1
-        self._actors[worker] = self._cls.remote(self.factory)
-        self._await_ready(worker)
+        for attempt in range(3):  # a node just lost may still be listed for a moment
+            cls = self._cls
+            if float(self.ray.available_resources().get("CPU", 0.0)) < self.cpus:
+                # the cluster lost CPUs (a node left): run on the rest, oversubscribed
+                self.log(f"so101-sim: Ray worker {self.name}-{worker} restarts without a CPU "
+                         "reservation: the cluster has fewer free CPUs than it started with "
+                         "(a node left?); the remaining nodes are oversubscribed")
+                cls = self._remote.options(**{**self._options, "num_cpus": 0})
+            self._actors[worker] = cls.remote(self.factory)
+            try:
+                self._await_ready(worker)
+                return
+            except RuntimeError:
+                self._kill(worker)
+                if attempt == 2:
+                    raise
+                time.sleep(2.0)
 
     def actor(self, worker: int) -> Any:
         """The Ray actor handle of `worker` (tests kill it to check recovery)."""

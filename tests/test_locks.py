@@ -1,0 +1,159 @@
+"""Two runs, one folder: the second is refused in one line naming the folder and the holder.
+
+Every command that writes a folder (eval --out, eval --save-rollouts, record, train, curve,
+export, explain) holds an flock on a lock file in it. Each pair below is started together as
+two processes (``SO101_SIM_LOCK_PAUSE_S`` makes the winner hold its lock a few seconds before
+it goes on, so the two surely overlap); exactly one runs, the other exits 2 with one line. A
+refused run changes nothing in the folder, and a SIGKILLed holder blocks nobody.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from test_training import _tiny_preset
+
+from so101_sim.record import record
+from so101_sim.train import train
+from so101_sim.utils.locks import LOCK_FILE, PAUSE_ENV, FolderInUseError, FolderLock
+
+SMALL = (48, 64)
+EXE = str(Path(sys.executable).parent / "so101-sim")
+ENV = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), "HF_HUB_OFFLINE": "1"}
+EVAL = ["eval", "--policy", "expert", "--episodes", "2", "--n-envs", "1", "--videos", "0",
+        "--image-size", "48x64"]
+
+
+@pytest.fixture(scope="module")
+def material(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A 2-episode dataset, a tiny preset and a 2-step training run (checkpoints for curve
+    and export)."""
+    root = tmp_path_factory.mktemp("locks")
+    record(root / "ds", 2, image_size=SMALL, progress=False)
+    tiny = _tiny_preset(root)
+    train(root / "ds", root / "run", preset_name=str(tiny), steps=2, threads=1,
+          progress=False)
+    ck = sorted((root / "run" / "checkpoints").glob("step_*"))[-1] / "pretrained_model"
+    return {"ds": root / "ds", "tiny": tiny, "run": root / "run", "ck": ck}
+
+
+def _commands(m: dict[str, Path], d: Path) -> dict[str, tuple[list[str], list[str], Path]]:
+    """name -> (argv of run 1, argv of run 2, the folder they share)."""
+    one = [*EVAL, "--out", str(d / "out")]
+    rollouts = [*EVAL, "--save-rollouts", str(d / "rollouts")]
+    train_args = ["train", "--preset", str(m["tiny"]), "--dataset", str(m["ds"]), "--steps",
+                  "2", "--threads", "1", "--out", str(d / "run")]
+    return {
+        "eval --out": (one, one, d / "out"),
+        "eval --save-rollouts": ([*rollouts, "--out", str(d / "a")],
+                                 [*rollouts, "--out", str(d / "b")], d / "rollouts"),
+        "record": (["record", "--episodes", "1", "--image-size", "48x64", "--out",
+                    str(d / "ds")],) * 2 + (d / "ds",),
+        "train": (train_args, train_args, d / "run"),
+        "curve": (["curve", str(m["run"]), "--episodes", "1", "--n-envs", "1"],) * 2
+        + (m["run"],),
+        "export": (["export", str(m["ck"]), "--out", str(d / "export")],) * 2 + (d,),
+        "explain": (["explain", "--dataset", str(m["ds"]), "--frame", "2", "--out",
+                     str(d / "page")],) * 2 + (d / "page",),
+    }
+
+
+def _start(argv: list[str], env: dict[str, str]) -> subprocess.Popen:
+    return subprocess.Popen([EXE, *argv], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
+@pytest.mark.parametrize("name", ["eval --out", "eval --save-rollouts", "record", "train",
+                                  "curve", "export", "explain"])
+def test_two_runs_started_together_one_is_refused(material, tmp_path: Path, name: str) -> None:
+    first, second, folder = _commands(material, tmp_path)[name]
+    env = {**ENV, PAUSE_ENV: "6"}
+    procs = [_start(first, env), _start(second, env)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    codes = sorted(p.returncode for p in procs)
+    assert codes == [0, 2], (codes, [o[1][-2000:] for o in outs])
+    loser = outs[[p.returncode for p in procs].index(2)]
+    winner = procs[[p.returncode for p in procs].index(0)]
+    last = loser[1].strip().splitlines()[-1]
+    assert "is in use:" in last and f"pid {winner.pid} " in last, loser[1][-2000:]
+    assert f"so101-sim {first[0]}" in last and str(folder) in last
+    assert "Traceback" not in loser[1]
+    assert not (folder / LOCK_FILE).exists()  # the winner removed its lock file on exit
+
+
+def _snapshot(folder: Path) -> dict[str, tuple[int, int]]:
+    return {str(p.relative_to(folder)): (p.stat().st_size, p.stat().st_mtime_ns)
+            for p in sorted(folder.rglob("*")) if p.is_file() and not p.name.endswith(".lock")}
+
+
+def _hold(folder: Path, name: str = LOCK_FILE) -> subprocess.Popen:
+    """Another process holding `folder`'s lock (as a writing run would)."""
+    code = ("import sys, time; from so101_sim.utils.locks import FolderLock; "
+            f"FolderLock({str(folder)!r}, 'the test', name={name!r}).acquire(); "
+            "print('held', flush=True); time.sleep(600)")
+    proc = subprocess.Popen([sys.executable, "-c", code], env=ENV, stdout=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "held"
+    return proc
+
+
+def _kill(proc: subprocess.Popen) -> None:
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=60)
+
+
+@pytest.mark.parametrize("name", ["eval --out", "record", "train"])
+def test_a_refused_run_changes_nothing_in_the_folder(material, tmp_path: Path,
+                                                     name: str) -> None:
+    first, _, folder = _commands(material, tmp_path)[name]
+    folder.mkdir(parents=True)
+    (folder / "notes.txt").write_text("someone else's")
+    before = _snapshot(folder)
+    holder = _hold(folder)
+    try:
+        r = subprocess.run([EXE, *first], env=ENV, capture_output=True, text=True, timeout=300)
+    finally:
+        _kill(holder)
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert f"is in use: pid {holder.pid} " in r.stderr.strip().splitlines()[-1]
+    assert _snapshot(folder) == before
+    assert sorted(p.name for p in folder.iterdir()) == sorted([LOCK_FILE, "notes.txt"])
+
+
+def test_a_sigkilled_run_leaves_no_lock_behind(tmp_path: Path) -> None:
+    out = tmp_path / "ds"
+    argv = ["record", "--episodes", "1", "--image-size", "48x64", "--out", str(out)]
+    proc = _start(argv, {**ENV, PAUSE_ENV: "120"})
+    deadline = time.monotonic() + 120
+    while not (out / LOCK_FILE).is_file() or not (out / LOCK_FILE).read_text():
+        assert time.monotonic() < deadline and proc.poll() is None
+        time.sleep(0.2)
+    assert json.loads((out / LOCK_FILE).read_text())["pid"] == proc.pid
+    _kill(proc)
+    assert (out / LOCK_FILE).exists()  # the file stays, the kernel dropped its lock
+    r = subprocess.run([EXE, *argv, "--resume"], env=ENV, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "1 episodes" in r.stdout and not (out / LOCK_FILE).exists()
+
+
+def test_lock_in_one_process_names_its_holder(tmp_path: Path) -> None:
+    holder = _hold(tmp_path / "x")
+    try:
+        with pytest.raises(FolderInUseError, match=rf"x is in use: pid {holder.pid} \(python"):
+            FolderLock(tmp_path / "x", "the thing").acquire()
+    finally:
+        _kill(holder)
+    with FolderLock(tmp_path / "x", "the thing"):  # free once its holder is gone
+        assert (tmp_path / "x" / LOCK_FILE).is_file()
+    assert not (tmp_path / "x" / LOCK_FILE).exists()
+    with pytest.raises(RuntimeError, match="boom"), FolderLock(tmp_path / "new", "it"):
+        raise RuntimeError("boom")
+    assert not (tmp_path / "new").exists()  # created by a run that failed at once: removed

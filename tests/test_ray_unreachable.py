@@ -1,0 +1,146 @@
+"""A Ray cluster that isn't there: one line in bounded time, no folder, signals that work.
+
+``--ray-address`` pointing where nothing listens ends in one line naming the address and
+``ray start --head --port P``; a port that accepts but never answers ends after
+``--ray-connect-timeout``; Ctrl-C and SIGTERM end the run at once while it connects, while a
+local runtime starts and while episodes run, and a run that never started leaves no folder
+(and no Ray process) behind. Losing a node mid-run is in test_ray_cluster.py.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("ray")
+
+EXE = str(Path(sys.executable).parent / "so101-sim")
+ENV = {**os.environ, "RAY_AUTH_MODE": "disabled", "HF_HUB_OFFLINE": "1",
+       "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+EVAL = ["eval", "--policy", "expert", "--episodes", "8", "--n-envs", "2", "--videos", "0",
+        "--image-size", "48x64"]
+
+
+def _closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]  # nothing listens there once it is closed
+
+
+@pytest.fixture
+def silent_port() -> Iterator[int]:
+    """A port that accepts connections (the kernel's backlog) and never says a word."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(64)
+        yield s.getsockname()[1]
+
+
+def _error_line(err: str) -> str:
+    """The one error line (a progress bar may be redrawn after it)."""
+    lines = [ln for ln in err.splitlines() if ": error: " in ln]
+    assert len(lines) == 1, err[-2000:]
+    return lines[0]
+
+
+@pytest.mark.parametrize("command", ["eval", "record"])
+def test_nothing_listening_is_one_line_and_no_folder(tmp_path: Path, command: str) -> None:
+    port, out = _closed_port(), tmp_path / "out"
+    argv = (EVAL if command == "eval" else ["record", "--episodes", "1", "--image-size",
+                                           "48x64"])
+    t0 = time.monotonic()
+    r = subprocess.run([EXE, *argv, "--out", str(out), "--backend", "ray", "--ray-address",
+                        f"127.0.0.1:{port}", "--ray-connect-timeout", "3"], env=ENV,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert time.monotonic() - t0 < 60
+    line = _error_line(r.stderr)
+    assert line.startswith(f"so101-sim {command}: error: no Ray cluster answers at "
+                           f"--ray-address 127.0.0.1:{port}"), line
+    assert f"`ray start --head --port {port}`" in line and "Traceback" not in r.stderr
+    assert not out.exists()
+
+
+def test_a_port_that_never_answers_is_bounded(tmp_path: Path, silent_port: int) -> None:
+    out = tmp_path / "out"
+    t0 = time.monotonic()
+    r = subprocess.run([EXE, *EVAL, "--out", str(out), "--backend", "ray", "--ray-address",
+                        f"127.0.0.1:{silent_port}", "--ray-connect-timeout", "5"], env=ENV,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert time.monotonic() - t0 < 120
+    line = _error_line(r.stderr)
+    assert f"Ray did not connect to 127.0.0.1:{silent_port} within 5 s" in line, line
+    assert f"ray start --head --port {silent_port}" in line and "Traceback" not in r.stderr
+    assert not out.exists()  # eval_config.json was written, then removed with its folder
+
+
+def _signal_when(proc: subprocess.Popen, ready: Path, sig: signal.Signals) -> float:
+    """Send `sig` once `ready` exists; return the seconds the process took to end."""
+    deadline = time.monotonic() + 300
+    while not (ready.is_file() and ready.stat().st_size) and proc.poll() is None:
+        assert time.monotonic() < deadline, "the run never got there"
+        time.sleep(0.2)
+    assert proc.poll() is None, proc.communicate()[1][-2000:]
+    time.sleep(1.0)
+    t0 = time.monotonic()
+    proc.send_signal(sig)
+    try:
+        proc.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        pytest.fail(f"{sig.name} did not end the run within 60 s")
+    return time.monotonic() - t0
+
+
+def _ray_processes() -> int:
+    out = subprocess.run(["ps", "-eo", "cmd"], capture_output=True, text=True).stdout
+    return sum(("ray::" in ln or "raylet" in ln or "gcs_server" in ln)
+               for ln in out.splitlines())
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_signals_end_a_run_that_is_connecting(tmp_path: Path, silent_port: int,
+                                              sig: signal.Signals) -> None:
+    out = tmp_path / "out"
+    proc = subprocess.Popen([EXE, *EVAL, "--out", str(out), "--backend", "ray",
+                             "--ray-address", f"127.0.0.1:{silent_port}",
+                             "--ray-connect-timeout", "120"], env=ENV, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    took = _signal_when(proc, out / "eval_config.json", sig)
+    err = proc.communicate()[1]
+    assert took < 15 and "Traceback" not in err, err[-2000:]
+    assert proc.returncode == (130 if sig == signal.SIGINT else sig.value)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(("sig", "stage"), [(signal.SIGINT, "starting"),
+                                            (signal.SIGTERM, "running")])
+def test_signals_end_a_run_on_a_local_runtime(tmp_path: Path, sig: signal.Signals,
+                                              stage: str) -> None:
+    """While the local Ray runtime starts (the signal waits until it has started, then the
+    runtime is shut down) and while episodes run: the run ends, no Ray process stays."""
+    before, out = _ray_processes(), tmp_path / "out"
+    proc = subprocess.Popen([EXE, *EVAL, "--out", str(out), "--backend", "ray"], env=ENV,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    ready = out / ("eval_config.json" if stage == "starting" else "episodes.jsonl")
+    took = _signal_when(proc, ready, sig)
+    err = proc.communicate()[1]
+    assert took < 30 and "Traceback" not in err, err[-2000:]
+    assert proc.returncode == (130 if sig == signal.SIGINT else sig.value)
+    if stage == "starting":
+        assert not out.exists()
+    else:  # finished episodes are kept for --resume
+        assert (out / "episodes.jsonl").read_text().count("\n") >= 1
+    deadline = time.monotonic() + 30
+    while _ray_processes() > before and time.monotonic() < deadline:
+        time.sleep(1)
+    assert _ray_processes() <= before
