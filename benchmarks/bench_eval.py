@@ -1,8 +1,8 @@
 """Rollout-harness speed, and the harness against lerobot-eval on the same checkpoint and seeds.
 
-    .venv/bin/python benchmarks/bench_eval.py CHECKPOINT [--episodes 50] [--n-envs 8]
+    .venv/bin/python benchmarks/bench_eval.py CHECKPOINT [--episodes 50] [--n-envs 16]
     .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --compare-lerobot
-    .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --paths --episodes 200
+    .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --paths --bf16 --episodes 200
     .venv/bin/python benchmarks/bench_eval.py --quick          # tiny untrained checkpoint
 
 (a) `so101-sim eval` on N episodes with K env workers: wall time and the physics / render /
@@ -14,10 +14,11 @@ data's size, then resize_frames) unless --image-size is given.
 size (lerobot-eval cannot resize) and both writing 10 videos (lerobot-eval always does):
 wall time of each whole command, the speed-up (target >= 4x) and whether the success rates'
 95% intervals overlap.
-(c) with --paths, the default render path against --faithful on the same seeds, side by side:
-wall time of each, the ratio, and `so101-sim compare` on the pair (both rates, the discordant
-seeds, exact McNemar p). Without a checkpoint a tiny untrained DiffusionPolicy is built
-(tests/tiny_policy.py): it fails every episode, so only the timings mean anything.
+(c) with --paths, run (a) against --faithful on the same seeds, side by side: wall time of
+each, the ratio, and `so101-sim compare` on the pair (both rates, the discordant seeds, exact
+McNemar p). (d) with --bf16, run (a) against the same with `--precision bf16`, likewise.
+Without a checkpoint a tiny untrained DiffusionPolicy is built (tests/tiny_policy.py): it fails
+every episode, so only the timings mean anything.
 """
 
 from __future__ import annotations
@@ -103,11 +104,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("checkpoint", nargs="?", help="lerobot checkpoint dir (default: tiny)")
     parser.add_argument("--episodes", type=int, default=50)
-    parser.add_argument("--n-envs", type=int, default=8, help="8 fills a policy forward")
+    parser.add_argument("--n-envs", type=int, default=16,
+                        help="env workers (default 16, as `so101-sim eval`)")
     parser.add_argument("--image-size", default=None, help="HxW for (a); default: harness's")
     parser.add_argument("--compare-lerobot", action="store_true", help="also run (b)")
     parser.add_argument("--paths", action="store_true",
                         help="run (c): the default render path against --faithful")
+    parser.add_argument("--bf16", action="store_true",
+                        help="run (d): fp32 forwards against --precision bf16")
     parser.add_argument("--quick", action="store_true",
                         help="4 episodes of 48 steps, 2 envs, (a) and (b): a sanity run")
     parser.add_argument("--max-steps", type=int, default=None,
@@ -147,8 +151,15 @@ def main() -> None:
           f"{t['render_s']:.1f} s, policy {t['policy_s']:.1f} s (summed over episodes); "
           f"success {rate(agg['n_success'], n)}"
           + ("  [target: 200 episodes <= 100 s]" if not args.quick else ""))
+    info = json.loads((work / "harness_a" / "eval_info.json").read_text())
+    first = min(e["seconds"] for e in info["per_episode"])
+    print(f"    start-up: {wall - agg['eval_s']:.1f} s before the loop (imports, checkpoint, "
+          f"render self-check), workers up in {info['config']['workers']['start_s']:.1f} s, "
+          f"first episode done {first:.1f} s after its reset ({k} envs start together)")
     if args.paths:
-        compare_paths(ckpt, work, n, k, task)
+        compare_variant("(c)", "faithful", wall, ckpt, work, n, k, task, ("--faithful",))
+    if args.bf16:
+        compare_variant("(d)", "bf16", wall, ckpt, work, n, k, task, ("--precision", "bf16"))
     if not args.compare_lerobot:
         return
     inp = policy_input_size(ckpt)
@@ -168,19 +179,19 @@ def main() -> None:
           f"{'overlap' if overlap else 'DO NOT overlap'}")
 
 
-def compare_paths(ckpt: Path, work: Path, n: int, k: int, task: str) -> None:
-    """(c) default render path against --faithful, same seeds, then the paired comparison."""
-    w_d, a_d = run_harness(ckpt, work / "paths_default", n, k, 0, None, task)
-    w_f, a_f = run_harness(ckpt, work / "paths_faithful", n, k, 0, None, task, ("--faithful",))
-    print(f"(c) {n} episodes, {k} envs, the same seeds:")
-    print(f"    default  {w_d:7.1f} s  success {rate(a_d['n_success'], n)}")
-    print(f"    faithful {w_f:7.1f} s  success {rate(a_f['n_success'], n)}")
-    print(f"    faithful / default wall: {w_f / w_d:.2f}x")
+def compare_variant(label: str, name: str, wall_a: float, ckpt: Path, work: Path, n: int,
+                    k: int, task: str, flags: tuple[str, ...]) -> None:
+    """Run (a)'s seeds again with `flags`; both walls, the ratio and the paired comparison."""
+    wall, agg = run_harness(ckpt, work / f"variant_{name}", n, k, 2, None, task, flags)
+    a = json.loads((work / "harness_a" / "eval_info.json").read_text())["aggregated"]
+    print(f"{label} {n} episodes, {k} envs, the same seeds, (a) against {' '.join(flags)}:")
+    print(f"    default {wall_a:7.1f} s  success {rate(a['n_success'], n)}")
+    print(f"    {name:7s} {wall:7.1f} s  success {rate(agg['n_success'], n)}")
+    print(f"    {name} / default wall: {wall / wall_a:.2f}x")
     from so101_sim.harness.compare import compare_runs, summary_lines
 
-    for line in summary_lines(compare_runs(work / "paths_default", work / "paths_faithful")):
+    for line in summary_lines(compare_runs(work / "harness_a", work / f"variant_{name}")):
         print(f"    {line}")
-
 
 if __name__ == "__main__":
     main()

@@ -317,6 +317,31 @@ def test_inference_overrides_are_checked(tiny_ckpt):
         load_policy("expert", batch_size=4)
 
 
+def test_bf16_forwards_are_close_to_fp32_and_named(tiny_ckpt):
+    """--precision bf16: same seeds give nearby chunks, and the run says which precision ran."""
+    rng = np.random.default_rng(1)
+    reqs = [ChunkRequest(i, 100000 + i, [{
+        "agent_pos": rng.uniform(-50, 50, 6).astype(np.float32),
+        "pixels": {c: rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+                   for c in ("front", "side")}} for _ in range(2)]) for i in range(3)]
+    chunks = {}
+    for precision in ("fp32", "bf16"):
+        policy = LeRobotPolicy(tiny_ckpt, precision=precision, log=lambda _: None)
+        for r in reqs:
+            policy.start_episode(r.slot, r.seed)
+        chunks[precision] = policy.predict_chunks(reqs)
+        assert chunks[precision].dtype == np.float32
+        assert ("precision" in policy.info.details) == (precision == "bf16")
+        if precision == "fp32":
+            fp32_print = policy.info.fingerprint
+    assert policy.info.fingerprint != fp32_print
+    assert not np.array_equal(chunks["fp32"], chunks["bf16"])  # autocast did run
+    scale = np.abs(chunks["fp32"]).max()
+    assert np.abs(chunks["fp32"] - chunks["bf16"]).max() < 0.05 * scale
+    with pytest.raises(ValueError, match=r"precision='fp16' is invalid.*fp32.*bf16"):
+        LeRobotPolicy(tiny_ckpt, precision="fp16")
+
+
 def test_import_so101_sim_harness_loads_no_torch():
     import subprocess
 

@@ -80,6 +80,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                                  ("num_inference_steps", args.inference_steps),
                                  ("noise_scheduler", args.noise_scheduler),
                                  ("batch_size", args.policy_batch),
+                                 ("precision", args.precision),
                                  ("camera_map", args.camera_map)) if v is not None}
     try:
         if args.device != "cpu" and args.policy != "expert" and ":" not in args.policy:

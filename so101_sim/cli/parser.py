@@ -211,6 +211,10 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--device", choices=("auto", "cpu", "cuda", "mps"), default="auto",
                     help="where policy forwards run (default auto: cuda, then mps, then cpu); "
                          "envs always run on CPU workers")
+    ev.add_argument("--precision", choices=("fp32", "bf16"), default=None,
+                    help="policy forwards in fp32 (default) or bfloat16 autocast (faster on "
+                         "CPUs with AVX512-BF16/AMX; outcomes can differ on a few seeds, see "
+                         "benchmarks/README.md)")
     ev.add_argument("--policy-batch", type=int, default=None,
                     help="rows per policy forward, padded (default 8; 1 = one env per forward)")
     ev.add_argument("--camera-map", type=parse_camera_map_arg, default=None,

@@ -54,6 +54,9 @@ from so101_sim.utils.trust import check_processor_files
 STANDARD_DIFFUSION = {"n_obs_steps": 2, "horizon": 16, "n_action_steps": 8,
                       "noise_scheduler_type": "DDIM", "num_inference_steps": 10}
 DEFAULT_BATCH = 8
+#: Forward precision: fp32 (default), or bfloat16 autocast (see benchmarks/README.md for its
+#: speed and outcome agreement on this CPU).
+PRECISIONS = ("fp32", "bf16")
 
 
 class LeRobotPolicy:
@@ -73,8 +76,12 @@ class LeRobotPolicy:
                  num_inference_steps: int | None = None, noise_scheduler: str | None = None,
                  batch_size: int = DEFAULT_BATCH, device: str = "cpu",
                  camera_map: dict[str, str] | None = None, task_description: str = "",
-                 log: Callable[[str], None] = print) -> None:
+                 precision: str = "fp32", log: Callable[[str], None] = print) -> None:
         self.path = Path(path).expanduser()
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision={precision!r} is invalid; expected one of "
+                             f"{PRECISIONS} (bf16 = bfloat16 autocast of the forwards)")
+        self.precision = precision
         self.task_text = task_description
         self.log = log
         if batch_size < 1:
@@ -108,6 +115,8 @@ class LeRobotPolicy:
             train_image_size=train_image_size(self.path),
             n_obs_steps=self.n_obs_steps, n_action_steps=self.n_action_steps,
             fingerprint=fingerprint(self.path, {**asked, "batch_size": self.batch_size,
+                                                 **({"precision": precision}
+                                                    if precision != "fp32" else {}),
                                                  **({"camera_map": renamed} if renamed else {})}),
             details=self._details(), camera_map=renamed)
 
@@ -179,6 +188,8 @@ class LeRobotPolicy:
             d["cameras"] = describe_camera_map(self.camera_map)
         d["batched inference"] = (f"padded to {self.batch_size} rows per forward"
                                   if self.batch_size > 1 else "one env per forward")
+        if self.precision != "fp32":
+            d["precision"] = "bf16 autocast"
         return d
 
     # --------------------------------------------------------------------- EvalPolicy
@@ -240,10 +251,15 @@ class LeRobotPolicy:
     @torch.no_grad()
     def _predict_raw(self, batch: dict[str, Any], noise: torch.Tensor | None) -> torch.Tensor:
         """The policy's whole chunk, normalised (before the postprocessor)."""
-        if self.is_diffusion:
-            noise = None if noise is None else noise.to(self.cfg.device)
-            return self.policy.predict_action_chunk(batch, noise=noise)
-        return self.policy.predict_action_chunk(batch)
+        device_type = torch.device(self.cfg.device).type
+        with torch.autocast(device_type, dtype=torch.bfloat16,
+                            enabled=self.precision == "bf16"):
+            if self.is_diffusion:
+                noise = None if noise is None else noise.to(self.cfg.device)
+                chunk = self.policy.predict_action_chunk(batch, noise=noise)
+            else:
+                chunk = self.policy.predict_action_chunk(batch)
+        return chunk.float()
 
     @torch.no_grad()
     def _predict(self, batch: dict[str, Any], noise: torch.Tensor | None) -> torch.Tensor:

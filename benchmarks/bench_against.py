@@ -1,0 +1,150 @@
+"""How fast `so101-sim eval --against RUN` calls a regression, and a non-regression.
+
+    .venv/bin/python benchmarks/bench_against.py policy/pick_place_diffusion \
+        [--noise 0.03] [--repeats 3] [--reference RUN] [--out DIR]
+
+The weakened checkpoint is the given one with seeded Gaussian noise added to every weight of
+its denoising U-Net (vision encoder untouched): each tensor gets noise of `--noise` times its
+own RMS (seed 0). Steps, all with the harness defaults (render path, 8 envs), seeds 100000..:
+
+1. the reference: the checkpoint on 200 seeds (skipped when --reference names such a run);
+2. the weakened checkpoint on the same 200 seeds, paired with `so101-sim compare`: its real
+   drop in points and McNemar p, so "a 10-point regression" is measured, not assumed;
+3. `eval --policy WEAK --against REF` and `eval --policy CKPT --against REF`, `--repeats` times
+   each: wall time of the whole command, episodes used and the verdict (target: "worse" in
+   <= 60 s median, "not worse" in about the same);
+4. the same test replayed offline over 2000 random orders of the 200 measured pairs: the
+   median and 90th percentile of episodes used, so one lucky seed order does not decide.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+BIN = Path(sys.executable).parent
+
+
+def weaken(ckpt: Path, out: Path, noise: float, seed: int = 0) -> Path:
+    """A copy of `ckpt` whose U-Net weights carry noise of `noise` x each tensor's RMS."""
+    import torch
+    from safetensors.torch import load_file, save_file
+
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(ckpt, out)
+    weights = load_file(str(ckpt / "model.safetensors"))
+    gen = torch.Generator().manual_seed(seed)
+    for name in sorted(weights):
+        tensor = weights[name]
+        if ".unet." not in f".{name}" or not tensor.is_floating_point():
+            continue
+        full = tensor.float()
+        rms = full.pow(2).mean().sqrt()
+        weights[name] = (full + noise * rms * torch.randn(full.shape, generator=gen)
+                         ).to(tensor.dtype)
+    save_file(weights, str(out / "model.safetensors"))
+    return out
+
+
+def run(cmd: list[str]) -> float:
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode:
+        sys.exit(f"{Path(cmd[0]).name} {cmd[1]} failed ({proc.returncode}):\n"
+                 f"{proc.stderr[-3000:]}")
+    return time.perf_counter() - t0
+
+
+def eval_cmd(policy: Path, out: Path, *extra: str) -> list[str]:
+    return [str(BIN / "so101-sim"), "eval", "--policy", str(policy), "--task", "pick_place",
+            "--videos", "0", "--out", str(out), *extra]
+
+
+def outcomes(run_dir: Path) -> dict[int, bool]:
+    from so101_sim.harness.compare import load_run
+
+    return dict(load_run(run_dir).success)
+
+
+def replay_orders(ref: dict[int, bool], new: dict[int, bool], orders: int,
+                  margin: float, alpha: float) -> tuple[np.ndarray, np.ndarray]:
+    """Verdicts and episodes used by the sequential test on random orders of the measured
+    pairs (the same permutation applied to both runs, so the pairs stay pairs)."""
+    from so101_sim.harness.sequential import batch_verdicts
+
+    seeds = sorted(set(ref) & set(new))
+    a = np.array([ref[s] for s in seeds], dtype=np.int64)
+    b = np.array([new[s] for s in seeds], dtype=np.int64)
+    rng = np.random.default_rng(0)
+    perms = np.stack([rng.permutation(len(seeds)) for _ in range(orders)])
+    return batch_verdicts(a[perms], b[perms], margin=margin, alpha=alpha)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("checkpoint")
+    parser.add_argument("--noise", type=float, default=0.03,
+                        help="U-Net weight noise, as a fraction of each tensor's RMS")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--episodes", type=int, default=200)
+    parser.add_argument("--reference", default=None,
+                        help="an earlier 200-seed run of CHECKPOINT (default: run it)")
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args()
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    work = Path(args.out or tempfile.mkdtemp(prefix="bench_against_"))
+    work.mkdir(parents=True, exist_ok=True)
+    ckpt = Path(args.checkpoint)
+    n = str(args.episodes)
+
+    ref = Path(args.reference) if args.reference else work / "reference"
+    if not (ref / "eval_info.json").exists():
+        wall = run(eval_cmd(ckpt, ref, "--episodes", n))
+        print(f"1. reference: {ckpt} on {n} seeds in {wall:.1f} s")
+    weak = weaken(ckpt, work / f"weak_noise{args.noise:g}", args.noise)
+    weak_full = work / "weak_full"
+    if not (weak_full / "eval_info.json").exists():
+        run(eval_cmd(weak, weak_full, "--episodes", n))
+    from so101_sim.harness.compare import compare_runs, summary_lines
+
+    print(f"2. weakened checkpoint (U-Net weights + {args.noise:g} x RMS noise, seed 0) on the "
+          "same seeds:")
+    for line in summary_lines(compare_runs(ref, weak_full)):
+        print(f"    {line}")
+
+    rows = {}
+    for name, policy in (("weakened", weak), ("itself", ckpt)):
+        walls, used, verdicts = [], [], []
+        for i in range(args.repeats):
+            out = work / f"against_{name}_{i}"
+            shutil.rmtree(out, ignore_errors=True)
+            walls.append(run(eval_cmd(policy, out, "--against", str(ref))))
+            v = json.loads((out / "eval_info.json").read_text())["sequential_verdict"]
+            used.append(v["episodes"])
+            verdicts.append(v["verdict"])
+        rows[name] = (walls, used, verdicts)
+        print(f"3. --against, {name}: verdict {sorted(set(verdicts))}, episodes {used}, wall "
+              f"{', '.join(f'{w:.1f}' for w in walls)} s, median {statistics.median(walls):.1f} s"
+              + ("  [target: worse in <= 60 s]" if name == "weakened" else ""))
+
+    ref_out, weak_out = outcomes(ref), outcomes(weak_full)
+    for name, new in (("weakened", weak_out), ("itself", ref_out)):
+        verdicts, used = replay_orders(ref_out, new, 2000, margin=0.0, alpha=0.05)
+        counts = {v: int((verdicts == v).sum()) for v in sorted(set(verdicts.tolist()))}
+        print(f"4. 2000 random orders of the 200 pairs, {name}: verdicts {counts}; episodes "
+              f"used median {int(np.median(used))}, p90 {int(np.percentile(used, 90))}")
+
+if __name__ == "__main__":
+    main()
