@@ -317,6 +317,32 @@ def test_inference_overrides_are_checked(tiny_ckpt):
         load_policy("expert", batch_size=4)
 
 
+def test_worker_side_resize_gives_the_driver_resize_bit_for_bit():
+    """Frames resized in the env worker (small replies) equal the driver's resize of the full
+    render, and the driver passes them through untouched."""
+    from so101_sim.harness.env_worker import EnvWorkerConfig
+    from so101_sim.harness.frames import Rendering, to_policy_obs
+    from so101_sim.tasks import load_task
+
+    rendering = Rendering((96, 128), (48, 64), "test")
+    obs = {}
+    for resize_to in (None, (48, 64)):
+        worker = EnvWorkerConfig(task=load_task("pick_place"), render_size=(96, 128),
+                                 cameras=("front", "side"), env_state=False, n_obs_steps=2,
+                                 resize_to=resize_to)()
+        try:
+            obs[resize_to] = worker.reset(100_003)["history"][0]
+        finally:
+            worker.close()
+    full, small = obs[None], obs[(48, 64)]
+    assert full["pixels"]["front"].shape == (96, 128, 3)
+    assert small["pixels"]["front"].shape == (48, 64, 3)
+    driver = to_policy_obs(full, rendering)
+    for cam in ("front", "side"):
+        assert np.array_equal(driver["pixels"][cam], small["pixels"][cam])
+    assert to_policy_obs(small, rendering)["pixels"] is small["pixels"]
+
+
 def test_bf16_forwards_are_close_to_fp32_and_named(tiny_ckpt):
     """--precision bf16: same seeds give nearby chunks, and the run says which precision ran."""
     rng = np.random.default_rng(1)

@@ -1,11 +1,10 @@
 """Success of a policy on the sim robot driven by lerobot's own tools, per seed, to pair with
 ``so101-sim eval`` on the same seeds.
 
-    python plugins/lerobot_robot_so101_sim/agreement.py rollout --episodes 30 --seed-start 100000
     so101-sim eval --policy policy/pick_place_diffusion --episodes 30 --seed-start 100000 \\
         --faithful --out outputs/eval/agreement
     python plugins/lerobot_robot_so101_sim/agreement.py rollout --episodes 30 \\
-        --seed-start 100000 --pair outputs/eval/agreement     # reads the saved outcomes again
+        --seed-start 100000 --pair outputs/eval/agreement
 
 ``rollout`` runs ``lerobot-rollout --strategy.type=episodic`` (sync inference) on seeds
 S..S+N-1: one dataset episode per seed, the policy reset at each, frames rendered at the

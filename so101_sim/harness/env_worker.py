@@ -34,6 +34,10 @@ class EnvWorkerConfig:
     n_obs_steps: int
     rollout: TapeSpec | None = None  # tape every episode (eval --save-rollouts)
     mesh_width: int | None = None  # mesh detail of this image width (default render width)
+    # Resize the policy's frames here, to this (h, w), with the training resize: a reply then
+    # carries 60x80 frames instead of 240x320 ones, small enough for the pipe's buffer, so a
+    # worker never blocks on a driver busy in a forward, and the resizes run in parallel.
+    resize_to: tuple[int, int] | None = None
 
     def __call__(self) -> EnvWorker:
         """Build the worker's env (and its GL context) where this is called."""
@@ -54,6 +58,14 @@ class EnvWorker:
         self.digest = hashlib.sha256()
         self._tmp: Path | None = None  # made when the first filmed episode starts
         self.tape: Any = None
+        self._resize: Any = None
+        if cfg.resize_to is not None:
+            import torch
+
+            from so101_sim.utils.image_pipeline import resize_frames
+
+            torch.set_num_threads(1)  # one worker, one core: no OpenMP pool spinning in each
+            self._resize = resize_frames
         if cfg.rollout is not None:
             from so101_sim.harness.rollout_tape import RolloutTape
 
@@ -69,6 +81,11 @@ class EnvWorker:
             frame = env.render()
             obs["pixels"] = {c: frame[:, i * w:(i + 1) * w] for i, c in enumerate(env.cameras)
                              if c in cfg.cameras}
+            if self._resize is not None:
+                cams = list(obs["pixels"])
+                small = self._resize(np.stack([obs["pixels"][c] for c in cams]), cfg.resize_to)
+                hwc = small.permute(0, 2, 3, 1).contiguous().numpy()
+                obs["pixels"] = {c: hwc[k] for k, c in enumerate(cams)}
         return obs
 
     def _timed(self, fn: Any, *args: Any) -> dict[str, Any]:

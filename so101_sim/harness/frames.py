@@ -156,12 +156,15 @@ def _hw(size: Any) -> str:
 
 
 def to_policy_obs(obs: dict[str, Any], rendering: Rendering) -> dict[str, Any]:
-    """Resize a worker's frames to the policy's input size with the training resize."""
+    """Resize a worker's frames to the policy's input size with the training resize (frames a
+    worker already resized, ``EnvWorkerConfig.resize_to``, pass through)."""
     if "pixels" not in obs or not rendering.resize:
+        return obs
+    cams = list(obs["pixels"])
+    if cams and obs["pixels"][cams[0]].shape[:2] == tuple(rendering.input_size):
         return obs
     from so101_sim.utils.image_pipeline import resize_frames
 
-    cams = list(obs["pixels"])
     small = resize_frames(np.stack([obs["pixels"][c] for c in cams]), rendering.input_size)
     hwc = small.permute(0, 2, 3, 1).contiguous().numpy()
     return {**obs, "pixels": {c: hwc[k] for k, c in enumerate(cams)}}

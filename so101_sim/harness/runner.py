@@ -237,7 +237,8 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
     cfg = EnvWorkerConfig(task=task, render_size=rendering.render_size, cameras=info.cameras,
                           env_state=info.needs_env_state, n_obs_steps=info.n_obs_steps,
                           rollout=sink.tape if sink is not None else None,
-                          mesh_width=rendering.mesh_width)
+                          mesh_width=rendering.mesh_width,
+                          resize_to=rendering.input_size if rendering.resize else None)
     failures: Counter[int] = Counter()
     bar = tqdm(total=episodes, initial=len(done), unit="ep", disable=not progress,
                dynamic_ncols=True)
@@ -247,9 +248,7 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
 
         select_gl_backend()  # choose (and print) once here: workers inherit MUJOCO_GL
     pool = start_pool(cfg, min(n_envs, len(todo)), backend=backend, ray_address=ray_address,
-                      name="so101-eval-worker", preload=("so101_sim.sim.env",) if sink is None
-                      else ("so101_sim.sim.env", "so101_sim.harness.rollout_tape",
-                            "lerobot.datasets.video_utils"),
+                      name="so101-eval-worker", preload=_preload(cfg, sink is not None),
                       timeout_s=worker_timeout_s, log=log)
     slots = [_Slot() for _ in range(pool.size)]
     # Rows per policy forward: the policy's own batch size (LeRobotPolicy pads to it), else all.
@@ -350,6 +349,16 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
         pool.close()
         bar.close()
     return n_run, workers
+
+
+def _preload(cfg: EnvWorkerConfig, rollouts: bool) -> tuple[str, ...]:
+    """Modules the fork server imports once for every worker (torch for in-worker resizes)."""
+    mods = ["so101_sim.sim.env"]
+    if cfg.resize_to is not None:
+        mods.append("so101_sim.utils.image_pipeline")
+    if rollouts:
+        mods += ["so101_sim.harness.rollout_tape", "lerobot.datasets.video_utils"]
+    return tuple(mods)
 
 
 def _save_video(path: str | None, mp4: bytes | None) -> str | None:
