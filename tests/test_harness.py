@@ -83,8 +83,15 @@ def test_pipelined_forwards_keep_results_per_seed(tiny_ckpt, short, tmp_path):
     runs = {k: evaluate(policy, task=str(short), episodes=SEEDS, n_envs=k, videos=0,
                         report=False, out_dir=tmp_path / f"k{k}", **_quiet())
             for k in (2, 5)}
-    assert _outcomes(runs[2]) == _outcomes(runs[5])
+    assert _outcomes(runs[2]) == _outcomes(runs[5])  # actions bit for bit, too
     assert len({e["actions_sha"] for e in runs[5]["per_episode"]}) == SEEDS
+    # two forwards ran at once on driver threads (harness.forwards); one at a time, the same
+    assert runs[5]["config"]["forwards_in_flight"] == 2
+    policy.concurrent_forwards = False
+    one = evaluate(policy, task=str(short), episodes=SEEDS, n_envs=5, videos=0, report=False,
+                   out_dir=tmp_path / "one", **_quiet())
+    assert one["config"]["forwards_in_flight"] == 1
+    assert _outcomes(one) == _outcomes(runs[5])
 
 
 def test_padded_rows_do_not_depend_on_batch_mates(tiny_ckpt):

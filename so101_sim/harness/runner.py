@@ -28,6 +28,7 @@ import numpy as np
 
 from so101_sim.dataset import EVAL_SEED_START
 from so101_sim.harness.env_worker import EnvWorkerConfig
+from so101_sim.harness.forwards import Forwards
 from so101_sim.harness.frames import Rendering, choose_rendering, to_policy_obs
 from so101_sim.harness.policies import ChunkRequest, EvalPolicy, load_policy
 from so101_sim.harness.results import (
@@ -140,15 +141,16 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
         f"{min(n_envs, max(1, len(todo)))} envs; images: {rendering.label}")
 
     t_start = time.perf_counter()
-    n_run, workers = 0, PoolInfo(backend, 0)
+    n_run, workers, in_flight = 0, PoolInfo(backend, 0), 0
     reruns: list[dict[str, Any]] = []
     finished = False
     try:
         if todo:
             with torch_threads(threads or eval_policy_threads()):
-                n_run, workers = _run(policy, run, spec, rendering, todo, done, seed_start,
-                                      episodes, n_envs, videos, worker_timeout_s, max_retries,
-                                      progress, backend, ray_address, reruns, log, sink, stop)
+                n_run, workers, in_flight = _run(
+                    policy, run, spec, rendering, todo, done, seed_start, episodes, n_envs,
+                    videos, worker_timeout_s, max_retries, progress, backend, ray_address,
+                    reruns, log, sink, stop)
         finished = True
     finally:
         if sink is not None:
@@ -162,6 +164,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
         "aggregated": aggregated,
         "config": {**identity, "n_envs": n_envs, "images": rendering.label,
                    "policy_details": info.details, "workers": workers.to_dict(),
+                   "forwards_in_flight": in_flight,
                    "reruns": reruns, "video_paths": [r.video for r in records if r.video],
                    **({"image_check": rendering.check} if rendering.check else {})},
     }
@@ -227,10 +230,10 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
          videos: int, worker_timeout_s: float, max_retries: int, progress: bool,
          backend: str, ray_address: str | None, reruns: list[dict[str, Any]],
          log: Callable[[str], None], sink: Any = None, stop: Any = None
-         ) -> tuple[int, PoolInfo]:
+         ) -> tuple[int, PoolInfo, int]:
     """Run every seed in `todo`; add each finished episode to `done` and to the run folder
     (and, with a rollout `sink`, to its dataset), and each episode that had to be run again
-    to `reruns`. Returns (episodes run, workers)."""
+    to `reruns`. Returns (episodes run, workers, most policy forwards in flight at once)."""
     from tqdm import tqdm
 
     info = policy.info
@@ -313,20 +316,23 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
             s.history = deque([*s.history, *new], maxlen=info.n_obs_steps)
             waiting.append(i)
 
-    def forward(ready: list[int]) -> None:
-        requests = [ChunkRequest(i, slots[i].seed, list(slots[i].history)) for i in ready]
-        t0 = time.perf_counter()
-        actions = np.asarray(policy.predict_chunks(requests), dtype=np.float32)
-        share = (time.perf_counter() - t0) / len(ready)
-        want = (len(ready), info.n_action_steps, 6)
-        if actions.shape != want:
-            raise RuntimeError(f"policy {info.name!r} returned actions of shape "
-                               f"{actions.shape}; expected {want} (requests, "
-                               "n_action_steps, joints)")
-        for j, i in enumerate(ready):
-            slots[i].policy_s += share
-            pool.submit(i, "act", actions[j])
+    def forward_done() -> None:
+        for requests, tokens, actions, seconds in forwards.finished():
+            actions = np.asarray(actions, dtype=np.float32)
+            want = (len(requests), info.n_action_steps, 6)
+            if actions.shape != want:
+                raise RuntimeError(f"policy {info.name!r} returned actions of shape "
+                                   f"{actions.shape}; expected {want} (requests, "
+                                   "n_action_steps, joints)")
+            for j, (r, token) in enumerate(zip(requests, tokens, strict=True)):
+                if slots[r.slot] is not token:  # that episode ended meanwhile (decided, lost)
+                    continue
+                token.policy_s += seconds / len(requests)
+                pool.submit(r.slot, "act", actions[j])
 
+    # Two forwards in flight where the policy allows it (harness.forwards); else one.
+    forwards = Forwards(policy, concurrent=backend == "local" and pool.size >= 2 * batch
+                        and bool(getattr(policy, "concurrent_forwards", False)))
     try:
         while todo or any(s.seed is not None for s in slots):
             for i, s in enumerate(slots):
@@ -338,17 +344,25 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                                      video=str(video) if video else None)
                     policy.start_episode(i, seed)
                     pool.submit(i, "reset", seed, slots[i].video is not None)
+            forward_done()
             # A forward as soon as it is full (or nothing else can arrive): with more envs than
             # rows per forward, the other envs step and render while the policy runs.
-            if len(waiting) >= batch or (waiting and not pool.busy):
-                forward([waiting.popleft() for _ in range(min(batch, len(waiting)))])
+            if forwards.can_launch() and (len(waiting) >= batch or (
+                    waiting and not pool.busy and not forwards.inflight)):
+                ready = [waiting.popleft() for _ in range(min(batch, len(waiting)))]
+                forwards.launch([ChunkRequest(i, slots[i].seed, list(slots[i].history))
+                                 for i in ready], [slots[i] for i in ready])
                 continue
-            handle(pool.collect(wait_all=False))
+            if forwards.inflight and not pool.busy:
+                forwards.wait()
+                continue
+            handle(pool.collect(wait_all=False, wake=forwards.wake))
         workers = pool.info()
     finally:
+        forwards.close()
         pool.close()
         bar.close()
-    return n_run, workers
+    return n_run, workers, forwards.peak
 
 
 def _preload(cfg: EnvWorkerConfig, rollouts: bool) -> tuple[str, ...]:

@@ -70,8 +70,9 @@ class WorkerPool(ABC):
         """Calls submitted to `worker` and not collected yet."""
 
     @abstractmethod
-    def collect(self, wait_all: bool = False) -> list[Reply]:
-        """Wait for at least one reply (``wait_all``: for every pending call) and return them.
+    def collect(self, wait_all: bool = False, wake: Any = None) -> list[Reply]:
+        """Wait for at least one reply (``wait_all``: for every pending call) and return them;
+        a readable `wake` handle (a connection or socket) also ends the wait, maybe with none.
 
         A worker found dead or hung is replaced before this returns.
         """

@@ -126,7 +126,7 @@ class LocalPool(WorkerPool):
     def pending(self, worker: int) -> int:
         return len(self._calls[worker])
 
-    def collect(self, wait_all: bool = False) -> list[Reply]:
+    def collect(self, wait_all: bool = False, wake: Any = None) -> list[Reply]:
         out: list[Reply] = []
         while self.busy and (wait_all or not out):
             handles: dict[Any, int] = {}
@@ -134,7 +134,10 @@ class LocalPool(WorkerPool):
                 handles[self._conns[i]] = i
                 handles[self._procs[i].sentinel] = i
             deadline = min(self._since.values()) + self.timeout_s
-            ready = wait(list(handles), timeout=max(0.0, deadline - time.monotonic()))
+            waitables = list(handles) if wake is None else [*handles, wake]
+            ready = wait(waitables, timeout=max(0.0, deadline - time.monotonic()))
+            woken = wake is not None and wake in ready
+            ready = [h for h in ready if h is not wake]
             answered: set[int] = set()
             for h in ready:  # replies first: a worker may exit right after its last reply
                 i = handles[h]
@@ -150,6 +153,8 @@ class LocalPool(WorkerPool):
             for i, t in list(self._since.items()):
                 if now - t > self.timeout_s:
                     out += self._died(i, f"no reply within {self.timeout_s:.0f} s")
+            if woken and not wait_all:
+                break
         return out
 
     def _receive(self, i: int) -> list[Reply]:

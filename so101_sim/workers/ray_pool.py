@@ -183,7 +183,8 @@ class RayPool(WorkerPool):
     def pending(self, worker: int) -> int:
         return len(self._calls[worker])
 
-    def collect(self, wait_all: bool = False) -> list[Reply]:
+    def collect(self, wait_all: bool = False, wake: Any = None) -> list[Reply]:
+        # `wake` (a forward finishing) is for local pools: eval runs one forward at a time here
         ray = self.ray
         out: list[Reply] = []
         while self.busy and (wait_all or not out):

@@ -72,6 +72,10 @@ class LeRobotPolicy:
     (``harness.policies.ensemble``).
     """
 
+    #: predict_chunks may run on two driver threads at once (harness.forwards): its state is
+    #: per slot, and the processors and predict_action_chunk keep none between calls.
+    concurrent_forwards = True
+
     def __init__(self, path: str | Path, *, n_action_steps: int | None = None,
                  num_inference_steps: int | None = None, noise_scheduler: str | None = None,
                  batch_size: int = DEFAULT_BATCH, device: str = "cpu",
