@@ -62,10 +62,10 @@ class EnvWorker:
         if cfg.resize_to is not None:
             import torch
 
-            from so101_sim.utils.image_pipeline import resize_frames
+            from so101_sim.utils.image_pipeline import resize_pixels
 
             torch.set_num_threads(1)  # one worker, one core: no OpenMP pool spinning in each
-            self._resize = resize_frames
+            self._resize = resize_pixels
         if cfg.rollout is not None:
             from so101_sim.harness.rollout_tape import RolloutTape
 
@@ -82,10 +82,7 @@ class EnvWorker:
             obs["pixels"] = {c: frame[:, i * w:(i + 1) * w] for i, c in enumerate(env.cameras)
                              if c in cfg.cameras}
             if self._resize is not None:
-                cams = list(obs["pixels"])
-                small = self._resize(np.stack([obs["pixels"][c] for c in cams]), cfg.resize_to)
-                hwc = small.permute(0, 2, 3, 1).contiguous().numpy()
-                obs["pixels"] = {c: hwc[k] for k, c in enumerate(cams)}
+                obs["pixels"] = self._resize(obs["pixels"], cfg.resize_to)
         return obs
 
     def _timed(self, fn: Any, *args: Any) -> dict[str, Any]:

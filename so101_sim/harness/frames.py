@@ -163,8 +163,6 @@ def to_policy_obs(obs: dict[str, Any], rendering: Rendering) -> dict[str, Any]:
     cams = list(obs["pixels"])
     if cams and obs["pixels"][cams[0]].shape[:2] == tuple(rendering.input_size):
         return obs
-    from so101_sim.utils.image_pipeline import resize_frames
+    from so101_sim.utils.image_pipeline import resize_pixels
 
-    small = resize_frames(np.stack([obs["pixels"][c] for c in cams]), rendering.input_size)
-    hwc = small.permute(0, 2, 3, 1).contiguous().numpy()
-    return {**obs, "pixels": {c: hwc[k] for k, c in enumerate(cams)}}
+    return {**obs, "pixels": resize_pixels(obs["pixels"], rendering.input_size)}

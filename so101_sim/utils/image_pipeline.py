@@ -37,3 +37,12 @@ def resize_frames(frames: np.ndarray | torch.Tensor, size: tuple[int, int]) -> t
     flat = t.reshape(-1, *t.shape[-3:])
     out = F.resize(flat, [h, w], interpolation=F.InterpolationMode.BILINEAR, antialias=True)
     return out.reshape(*lead, 3, h, w)
+
+
+def resize_pixels(pixels: dict[str, np.ndarray], size: tuple[int, int]) -> dict[str, np.ndarray]:
+    """``{camera: HxWx3 uint8}`` -> the same cameras resized to `size` with ``resize_frames``
+    (one call for all cameras), channels last, as numpy."""
+    cams = list(pixels)
+    small = resize_frames(np.stack([pixels[c] for c in cams]), size)
+    hwc = small.permute(0, 2, 3, 1).contiguous().numpy()
+    return {c: hwc[k] for k, c in enumerate(cams)}
