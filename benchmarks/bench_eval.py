@@ -173,8 +173,9 @@ def main() -> None:
     overlap = lo_h <= hi_l and lo_l <= hi_h
     print(f"(b) same checkpoint and seeds 100000.., {inp[0]}x{inp[1]} renders, {k} envs, "
           f"{min(10, n)} videos each:")
-    print(f"    harness      {w_h:7.1f} s  success {rate(k_h, n)}")
-    print(f"    lerobot-eval {w_l:7.1f} s  success {rate(k_l, n)}")
+    for name, wall, k_x, agg in (("harness", w_h, k_h, a_h), ("lerobot-eval", w_l, k_l, a_l)):
+        print(f"    {name:12s} {wall:7.1f} s  success {rate(k_x, n)}  "
+              f"(its loop {agg['eval_s']:.1f} s)")
     print(f"    speed-up {w_l / w_h:.2f}x (target >= 4x); 95% intervals "
           f"{'overlap' if overlap else 'DO NOT overlap'}")
 

@@ -296,6 +296,10 @@ def test_success_curve_goes_into_the_card(dataset: Path, tiny: Path, tmp_path: P
     assert all(r["episodes"] == 1 and r["successes"] in (0, 1) for r in rows)
     again = evaluate_curve(run, episodes=1, n_envs=1, progress=False)  # nothing left to run
     assert again == rows
+    # a multi-task run has a curve per task: lift's rows are its own, pick_place's stay
+    lift = evaluate_curve(run, episodes=1, n_envs=1, steps=[4], task="lift", progress=False)
+    assert [(r["task"], r["step"]) for r in lift] == [("lift", 4)]
+    assert evaluate_curve(run, episodes=1, n_envs=1, progress=False) == rows
     shipped = export_policy(run / "checkpoints" / "step_0000004" / "pretrained_model",
                             tmp_path / "shipped")
     card = (shipped / "README.md").read_text()

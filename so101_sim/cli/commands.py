@@ -122,12 +122,13 @@ def cmd_curve(args: argparse.Namespace) -> int:
 
     run = Path(args.run)
     rows = evaluate_curve(run, episodes=args.episodes, every=args.every, n_envs=args.n_envs,
-                          seed_start=args.seed_start)
+                          seed_start=args.seed_start, task=args.task)
     for r in rows:
         print(f"step {r['step']:>7} ({r['train_hours']:.2f} h): {r['successes']}/"
               f"{r['episodes']} = {100 * r['success']:.1f}% (95% CI {100 * r['ci95'][0]:.1f}-"
               f"{100 * r['ci95'][1]:.1f})")
-    print(f"plot: {plot_curve(rows, run / 'eval_curve.png')}")
+    name = "eval_curve.png" if args.task == "pick_place" else f"eval_curve_{args.task}.png"
+    print(f"plot: {plot_curve(rows, run / name, title=f'{args.task}: closed-loop success')}")
     return 0
 
 

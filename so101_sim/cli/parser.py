@@ -138,6 +138,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="only checkpoints whose step is a multiple of this (default: all)")
     cu.add_argument("--n-envs", type=int, default=8)
     cu.add_argument("--seed-start", type=int, default=100_000)
+    cu.add_argument("--task", default="pick_place",
+                    help="task to evaluate on (a multi-task run has one curve per task)")
     cu.set_defaults(func=commands.cmd_curve)
 
     ex = sub.add_parser("export", help="copy a trained checkpoint to a shippable folder: fp16 "

@@ -1,9 +1,10 @@
 """Success against training progress: evaluate a run's saved checkpoints on evaluation seeds.
 
-``so101-sim curve RUN --episodes 32`` runs the harness on each ``checkpoints/step_*/
+``so101-sim curve RUN --episodes 32 [--task T]`` runs the harness on each ``checkpoints/step_*/
 pretrained_model`` of a `so101-sim train` run (every one, or every `--every` steps), on the
-same seeds each time, and appends one line per checkpoint to ``RUN/eval_curve.jsonl`` (step,
-CPU-hours of training so far, successes, Wilson interval). Checkpoints already in the file
+same seeds each time, and appends one line per checkpoint and task to ``RUN/eval_curve.jsonl``
+(task, step, CPU-hours of training so far, successes, Wilson interval). A multi-task run has one
+curve per task. Checkpoints already in the file
 are skipped, so it can be rerun as training goes on. ``plot_curve`` draws it (success with
 its interval against step and against training hours) for the model card.
 """
@@ -23,6 +24,7 @@ from so101_sim.utils.locks import folder_lock
 CURVE_FILE = "eval_curve.jsonl"
 CURVE_LOCK = ".so101-curve.lock"  # not train's lock: a curve may run while training goes on
 _STEP = re.compile(r"step_(\d+)$")
+DEFAULT_TASK = "pick_place"  # as `so101-sim eval`
 
 
 def run_checkpoints(run: Path) -> list[tuple[int, Path]]:
@@ -35,7 +37,9 @@ def run_checkpoints(run: Path) -> list[tuple[int, Path]]:
     return sorted(found)
 
 
-def read_curve(run: Path) -> list[dict[str, Any]]:
+def read_curve(run: Path, task: str | None = None) -> list[dict[str, Any]]:
+    """The run's curve rows by step; only `task`'s if given (rows written before curves had a
+    task are pick_place's, the only task then)."""
     path = run / CURVE_FILE
     if not path.is_file():
         return []
@@ -45,12 +49,14 @@ def read_curve(run: Path) -> list[dict[str, Any]]:
             rows.append(json.loads(line))
         except json.JSONDecodeError:
             continue  # a line torn by a kill: that checkpoint is evaluated again
+    if task is not None:
+        rows = [r for r in rows if r.get("task", DEFAULT_TASK) == task]
     return sorted(rows, key=lambda r: r["step"])
 
 
 def evaluate_curve(run: str | Path, *, episodes: int = 32, every: int = 0, n_envs: int = 8,
                    seed_start: int = 100_000, steps: list[int] | None = None,
-                   progress: bool = True) -> list[dict[str, Any]]:
+                   task: str = DEFAULT_TASK, progress: bool = True) -> list[dict[str, Any]]:
     """Evaluate the run's checkpoints not yet in its curve file; return the whole curve.
     Two curves of one run at once are refused (a training run may go on beside it)."""
     run = Path(run)
@@ -59,32 +65,33 @@ def evaluate_curve(run: str | Path, *, episodes: int = 32, every: int = 0, n_env
         raise ValueError(f"{run} holds no checkpoints/step_*/pretrained_model; pass the --out "
                          "folder of a `so101-sim train` run")
     with folder_lock(run, "the learning curve", again="rerun", name=CURVE_LOCK):
-        _evaluate_missing(run, checkpoints, episodes, every, n_envs, seed_start, steps,
+        _evaluate_missing(run, checkpoints, episodes, every, n_envs, seed_start, steps, task,
                           progress)
-    return [r for r in read_curve(run)
+    return [r for r in read_curve(run, task)
             if r.get("episodes") == episodes and r.get("seed_start") == seed_start]
 
 
 def _evaluate_missing(run: Path, checkpoints: list[tuple[int, Path]], episodes: int,
                       every: int, n_envs: int, seed_start: int, steps: list[int] | None,
-                      progress: bool) -> None:
+                      task: str, progress: bool) -> None:
     from so101_sim.harness.runner import evaluate
 
-    done = {r["step"] for r in read_curve(run) if r.get("episodes") == episodes
+    done = {r["step"] for r in read_curve(run, task) if r.get("episodes") == episodes
             and r.get("seed_start") == seed_start}
     chosen = [(s, p) for s, p in checkpoints
               if (steps is None or s in steps) and (every <= 0 or s % every == 0)
               and s not in done]
     for step, path in chosen:
         info = read_train_info(path) or {}
-        out = run / "eval_curve" / f"step_{step:07d}"
-        result = evaluate(str(path), episodes=episodes, n_envs=n_envs, seed_start=seed_start,
-                          out_dir=out, videos=0, resume=out.exists(), progress=progress,
-                          report=False)
+        out = run / "eval_curve" / task / f"step_{step:07d}"
+        result = evaluate(str(path), task=task, episodes=episodes, n_envs=n_envs,
+                          seed_start=seed_start, out_dir=out, videos=0, resume=out.exists(),
+                          progress=progress, report=False)
         agg = result["aggregated"]
         k = round(agg["pc_success"] * episodes / 100)
         lo, hi = wilson_interval(k, episodes)
-        row = {"step": step, "train_hours": round(info.get("train_wall_s", 0) / 3600, 3),
+        row = {"task": task, "step": step,
+               "train_hours": round(info.get("train_wall_s", 0) / 3600, 3),
                "episodes": episodes, "seed_start": seed_start, "successes": k,
                "success": k / episodes, "ci95": [round(lo, 4), round(hi, 4)],
                "failure_modes": agg.get("failure_modes", {})}

@@ -11,7 +11,7 @@ import json
 import shutil
 from pathlib import Path
 
-from so101_sim.harness.curve import plot_curve, read_curve
+from so101_sim.harness.curve import DEFAULT_TASK, plot_curve, read_curve
 from so101_sim.harness.results import INFO, check_eval_info
 from so101_sim.train.checkpoint import TRAIN_INFO
 from so101_sim.utils.locks import folder_lock
@@ -164,7 +164,8 @@ def _export(checkpoint: Path, dest: Path, info_path: Path, eval_dir: Path | None
         curve = loss_curve(log) if log.is_file() else []
         curve = [r for r in curve if r["step"] <= info["step"]]
         run = checkpoint.parents[2]
-        success_curve = [r for r in read_curve(run) if r["step"] <= info["step"]]
+        task = (eval_info or {}).get("config", {}).get("task", DEFAULT_TASK)
+        success_curve = [r for r in read_curve(run, task) if r["step"] <= info["step"]]
         if success_curve:
             plot_curve(success_curve, tmp / "curve.png")
         (tmp / "README.md").write_text(model_card(info, eval_info, curve, hardware, also,
