@@ -19,6 +19,16 @@ def parse_image_size(text: str) -> tuple[int, int]:
     return h, w
 
 
+def parse_steps(text: str) -> list[int]:
+    """`--steps 8000,12000` -> [8000, 12000]."""
+    try:
+        return [int(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--steps {text!r}: expected checkpoint steps separated by commas, e.g. 8000,12000"
+        ) from None
+
+
 def parse_camera_map_arg(text: str) -> dict[str, str]:
     """argparse type for --camera-map (see so101_sim.harness.camera_map)."""
     from so101_sim.harness.camera_map import parse_camera_map
@@ -138,6 +148,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="only checkpoints whose step is a multiple of this (default: all)")
     cu.add_argument("--n-envs", type=int, default=8)
     cu.add_argument("--seed-start", type=int, default=100_000)
+    cu.add_argument("--steps", default=None, type=parse_steps,
+                    help="only these checkpoint steps, comma-separated (e.g. 8000,12000)")
     cu.add_argument("--task", default="pick_place",
                     help="task to evaluate on (a multi-task run has one curve per task)")
     cu.set_defaults(func=commands.cmd_curve)
