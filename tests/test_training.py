@@ -305,3 +305,20 @@ def test_success_curve_goes_into_the_card(dataset: Path, tiny: Path, tmp_path: P
     card = (shipped / "README.md").read_text()
     assert "![success against training](curve.png)" in card and (shipped / "curve.png").is_file()
     assert "| 4 | " in card
+
+
+def test_a_preset_variant_states_only_what_differs(tmp_path: Path) -> None:
+    """`base = "cpu"`: the variant is cpu.toml with its own sections' keys on top."""
+    cpu, small = load_preset("cpu"), load_preset("cpu48")
+    assert small.image_size == (48, 64) and small.diffusion["crop_shape"] == (43, 58)
+    assert small.train == cpu.train and small.image_normalize == cpu.image_normalize
+    differ = {k for k in cpu.diffusion if cpu.diffusion[k] != small.diffusion[k]}
+    assert differ == {"crop_shape"}
+    loop = tmp_path / "loop.toml"
+    loop.write_text('base = "loop.toml"\nname = "loop"\n')
+    with pytest.raises(PresetError, match="leads back to itself"):
+        load_preset(loop)
+    typo = tmp_path / "typo.toml"
+    typo.write_text('base = "cpuu"\nname = "typo"\n')
+    with pytest.raises(PresetError, match="unknown preset 'cpuu'"):
+        load_preset(typo)

@@ -3,7 +3,7 @@
 A preset must set every `DiffusionConfig` field that changes the model or its training, so no
 lerobot default leaks in silently (0.6.1's defaults differ from the seed); the loader refuses a
 preset with a missing or unknown field. Only the features (taken from the dataset) and the hub
-bookkeeping fields are left out.
+bookkeeping fields are left out. A variant names ``base = "cpu"`` and sets only what differs.
 """
 
 from __future__ import annotations
@@ -100,13 +100,33 @@ def _convert_diffusion(raw: dict[str, Any], where: Path) -> dict[str, Any]:
     return out
 
 
-def load_preset(name_or_path: str | Path) -> Preset:
-    """Read and validate a preset by name (`seed`, `cpu`) or .toml path."""
-    path = preset_path(name_or_path)
+def _read_raw(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """The preset's TOML, on top of its ``base`` preset's if it names one: a variant (another
+    frame size, a wider U-Net) states only what differs, section by section."""
     try:
         raw = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise PresetError(f"{path}: not valid TOML ({e}); fix the syntax") from None
+    base = raw.pop("base", None)
+    if base is None:
+        return raw
+    base_path = preset_path(path.parent / base if str(base).endswith(".toml") else base)
+    if base_path.resolve() in seen:
+        raise PresetError(f"{path}: base {base!r} leads back to itself; a chain of bases must "
+                          "end at a preset without `base`")
+    merged = _read_raw(base_path, (*seen, path.resolve()))
+    for key, value in raw.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = {**merged[key], **value}
+        else:
+            merged[key] = value
+    return merged
+
+
+def load_preset(name_or_path: str | Path) -> Preset:
+    """Read and validate a preset by name (`seed`, `cpu`) or .toml path."""
+    path = preset_path(name_or_path)
+    raw = _read_raw(path, (path.resolve(),))
     try:
         images, train = raw["images"], raw["train"]
         size = tuple(int(v) for v in images["size"])
