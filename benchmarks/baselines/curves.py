@@ -1,0 +1,52 @@
+"""The baselines' learning curves: one plot per run and task, and the rows of the status table.
+
+    .venv/bin/python benchmarks/baselines/curves.py RUN [RUN ...] [--idle-steps-per-s R]
+
+Each RUN is a `so101-sim train --out` folder whose checkpoints `so101-sim curve RUN --task T
+--episodes 64` has evaluated (RUN/eval_curve.jsonl). For every task found there it draws
+success with its 95% Wilson interval against step and trainer hours into
+`benchmarks/baselines/<run>_<task>.png` (`--plots DIR` elsewhere) and prints one markdown row per
+evaluated checkpoint. Trainer hours are the trainer's wall clock, pauses and CPU sharing
+included; the README converts steps to idle-CPU hours with the measured step rate.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from so101_sim.harness.curve import plot_curve, read_curve
+
+HERE = Path(__file__).resolve().parent
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("runs", nargs="+", type=Path, help="`so101-sim train --out` folders")
+    parser.add_argument("--episodes", type=int, default=64, help="curve rows of this many seeds")
+    parser.add_argument("--plots", type=Path, default=HERE, help="where the PNGs go")
+    args = parser.parse_args(argv)
+    print("| run | task | step | trainer h | success | 95% CI | failures |")
+    print("|---|---|---|---|---|---|---|")
+    for run in args.runs:
+        rows = [r for r in read_curve(run) if r.get("episodes") == args.episodes]
+        if not rows:
+            raise SystemExit(f"{run}: no {args.episodes}-seed rows in its eval_curve.jsonl; run "
+                             f"`so101-sim curve {run} --task T --episodes {args.episodes}` first")
+        for task in sorted({r.get("task", "pick_place") for r in rows}):
+            curve = [r for r in read_curve(run, task) if r.get("episodes") == args.episodes]
+            png = plot_curve(curve, args.plots / f"{run.name}_{task}.png",
+                             title=f"run {run.name}, task {task}: {args.episodes} seeds from "
+                                   f"{curve[-1]['seed_start']} per checkpoint")
+            for r in curve:
+                lo, hi = (100 * x for x in r["ci95"])
+                modes = ", ".join(f"{k} {v}" for k, v in sorted(
+                    r["failure_modes"].items(), key=lambda kv: -kv[1])) or "none"
+                print(f"| `{run.name}` | {task} | {r['step']} | {r['train_hours']:.2f} | "
+                      f"{r['successes']}/{r['episodes']} | {lo:.1f}-{hi:.1f} | {modes} |")
+            print(f"<!-- plot: {png} -->")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
