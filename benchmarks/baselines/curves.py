@@ -7,7 +7,8 @@ Each RUN is a `so101-sim train --out` folder whose checkpoints `so101-sim curve 
 success with its 95% Wilson interval against step and trainer hours into
 `benchmarks/baselines/<run>_<task>.png` (`--plots DIR` elsewhere) and prints one markdown row per
 evaluated checkpoint. Trainer hours are the trainer's wall clock, pauses and CPU sharing
-included; the README converts steps to idle-CPU hours with the measured step rate.
+included; with `--idle-steps-per-s R` (the rate `bench_train_step.py` measures on an idle CPU)
+the plots' hours axis and a column are idle-CPU hours instead: step / R.
 """
 
 from __future__ import annotations
@@ -25,8 +26,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("runs", nargs="+", type=Path, help="`so101-sim train --out` folders")
     parser.add_argument("--episodes", type=int, default=64, help="curve rows of this many seeds")
     parser.add_argument("--plots", type=Path, default=HERE, help="where the PNGs go")
+    parser.add_argument("--idle-steps-per-s", type=float, default=None,
+                        help="training steps per second on an idle CPU: hours = step / this")
     args = parser.parse_args(argv)
-    print("| run | task | step | trainer h | success | 95% CI | failures |")
+    rate = args.idle_steps_per_s
+    hours = ("idle_hours", f"idle 2-core CPU hours (step / {rate} steps/s)") if rate else (
+        "train_hours", "trainer wall hours (incl. pauses)")
+    print(f"| run | task | step | {'idle CPU h' if rate else 'trainer h'} | success | 95% CI "
+          "| failures |")
     print("|---|---|---|---|---|---|---|")
     for run in args.runs:
         rows = [r for r in read_curve(run) if r.get("episodes") == args.episodes]
@@ -35,14 +42,17 @@ def main(argv: list[str] | None = None) -> int:
                              f"`so101-sim curve {run} --task T --episodes {args.episodes}` first")
         for task in sorted({r.get("task", "pick_place") for r in rows}):
             curve = [r for r in read_curve(run, task) if r.get("episodes") == args.episodes]
+            for r in curve:
+                r["idle_hours"] = r["step"] / rate / 3600 if rate else None
             png = plot_curve(curve, args.plots / f"{run.name}_{task}.png",
+                             hours_key=hours[0], hours_label=hours[1],
                              title=f"run {run.name}, task {task}: {args.episodes} seeds from "
                                    f"{curve[-1]['seed_start']} per checkpoint")
             for r in curve:
                 lo, hi = (100 * x for x in r["ci95"])
                 modes = ", ".join(f"{k} {v}" for k, v in sorted(
                     r["failure_modes"].items(), key=lambda kv: -kv[1])) or "none"
-                print(f"| `{run.name}` | {task} | {r['step']} | {r['train_hours']:.2f} | "
+                print(f"| `{run.name}` | {task} | {r['step']} | {r[hours[0]]:.2f} | "
                       f"{r['successes']}/{r['episodes']} | {lo:.1f}-{hi:.1f} | {modes} |")
             print(f"<!-- plot: {png} -->")
     return 0

@@ -98,8 +98,11 @@ def _evaluate_missing(run: Path, checkpoints: list[tuple[int, Path]], episodes: 
         append_line(run / CURVE_FILE, json.dumps(row))
 
 
-def plot_curve(rows: list[dict[str, Any]], dest: Path, title: str = "") -> Path:
-    """Success (with 95% Wilson interval) against step and against training hours."""
+def plot_curve(rows: list[dict[str, Any]], dest: Path, title: str = "",
+               hours_key: str = "train_hours",
+               hours_label: str = "trainer wall hours (incl. pauses)") -> Path:
+    """Success (with 95% Wilson interval) against step and against training hours (the
+    trainer's wall clock, or another hours column of the rows: `hours_key`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -107,7 +110,7 @@ def plot_curve(rows: list[dict[str, Any]], dest: Path, title: str = "") -> Path:
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
     for ax, key, label in ((axes[0], "step", "training step"),
-                           (axes[1], "train_hours", "trainer wall hours (incl. pauses)")):
+                           (axes[1], hours_key, hours_label)):
         x = [r[key] for r in rows]
         y = [100 * r["success"] for r in rows]
         lo = [100 * r["ci95"][0] for r in rows]
