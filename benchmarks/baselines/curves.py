@@ -3,12 +3,14 @@
     .venv/bin/python benchmarks/baselines/curves.py RUN [RUN ...] [--idle-steps-per-s R]
 
 Each RUN is a `so101-sim train --out` folder whose checkpoints `so101-sim curve RUN --task T
---episodes 64` has evaluated (RUN/eval_curve.jsonl). For every task found there it draws
+--episodes N` has evaluated (RUN/eval_curve.jsonl). For every task found there it draws
 success with its 95% Wilson interval against step and trainer hours into
 `benchmarks/baselines/<run>_<task>.png` (`--plots DIR` elsewhere) and prints one markdown row per
-evaluated checkpoint. Trainer hours are the trainer's wall clock, pauses and CPU sharing
-included; with `--idle-steps-per-s R` (the rate `bench_train_step.py` measures on an idle CPU)
-the plots' hours axis and a column are idle-CPU hours instead: step / R.
+evaluated checkpoint. Points may differ in seed count (64 along the way, 200 for a table
+row); each carries its own interval, and `--episodes N` keeps only N-seed rows. Trainer
+hours are the trainer's wall clock, pauses and CPU sharing included; with
+`--idle-steps-per-s R` (the rate `bench_train_step.py` measures on an idle CPU) the plots'
+hours axis and a column are idle-CPU hours instead: step / R.
 """
 
 from __future__ import annotations
@@ -24,7 +26,8 @@ HERE = Path(__file__).resolve().parent
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", type=Path, help="`so101-sim train --out` folders")
-    parser.add_argument("--episodes", type=int, default=64, help="curve rows of this many seeds")
+    parser.add_argument("--episodes", type=int, default=None,
+                        help="only curve rows of this many seeds (default: every row)")
     parser.add_argument("--plots", type=Path, default=HERE, help="where the PNGs go")
     parser.add_argument("--idle-steps-per-s", type=float, default=None,
                         help="training steps per second on an idle CPU: hours = step / this")
@@ -35,18 +38,23 @@ def main(argv: list[str] | None = None) -> int:
     print(f"| run | task | step | {'idle CPU h' if rate else 'trainer h'} | success | 95% CI "
           "| failures |")
     print("|---|---|---|---|---|---|---|")
+    def wanted(row: dict) -> bool:
+        return args.episodes is None or row.get("episodes") == args.episodes
+
     for run in args.runs:
-        rows = [r for r in read_curve(run) if r.get("episodes") == args.episodes]
+        rows = [r for r in read_curve(run) if wanted(r)]
         if not rows:
-            raise SystemExit(f"{run}: no {args.episodes}-seed rows in its eval_curve.jsonl; run "
-                             f"`so101-sim curve {run} --task T --episodes {args.episodes}` first")
+            which = f"{args.episodes}-seed rows" if args.episodes else "rows"
+            raise SystemExit(f"{run}: no {which} in its eval_curve.jsonl; run `so101-sim curve "
+                             f"{run} --task T --episodes {args.episodes or 64}` first")
         for task in sorted({r.get("task", "pick_place") for r in rows}):
-            curve = [r for r in read_curve(run, task) if r.get("episodes") == args.episodes]
+            curve = [r for r in read_curve(run, task) if wanted(r)]
+            counts = " or ".join(str(n) for n in sorted({r["episodes"] for r in curve}))
             for r in curve:
                 r["idle_hours"] = r["step"] / rate / 3600 if rate else None
             png = plot_curve(curve, args.plots / f"{run.name}_{task}.png",
                              hours_key=hours[0], hours_label=hours[1],
-                             title=f"run {run.name}, task {task}: {args.episodes} seeds from "
+                             title=f"run {run.name}, task {task}: {counts} seeds from "
                                    f"{curve[-1]['seed_start']} per checkpoint")
             for r in curve:
                 lo, hi = (100 * x for x in r["ci95"])
