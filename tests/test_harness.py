@@ -152,6 +152,18 @@ def test_outputs_videos_report_and_resume(tmp_path, capsys):
     assert [e["seed"] for e in again["per_episode"]] == list(range(100000, 100005))
     assert _strip_times(again["per_episode"]) == _strip_times(info["per_episode"])
 
+    # More episodes on --resume extend the run: the first five are kept, two more run.
+    assert main(["eval", "--policy", "expert", "--episodes", "7", "--n-envs", "2",
+                 "--videos", "0", "--image-size", "48x64", "--out", str(out),
+                 "--resume"]) == 0
+    assert "(5 done, 2 to run)" in capsys.readouterr().out
+    longer = json.loads((out / "eval_info.json").read_text())
+    assert [e["seed"] for e in longer["per_episode"]] == list(range(100000, 100007))
+    assert _strip_times(longer["per_episode"][:5]) == _strip_times(info["per_episode"])
+    assert longer["aggregated"]["n_episodes"] == 7
+    with pytest.raises(ValueError, match="episodes: 7 there, 5 now"):
+        evaluate("expert", episodes=5, out_dir=out, resume=True, **_quiet())
+
     with pytest.raises(ValueError, match="--resume"):
         evaluate("expert", episodes=5, out_dir=out, **_quiet())
     with pytest.raises(ValueError, match="seed_start: 100000 there, 100100 now"):

@@ -211,7 +211,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--max-episodes", type=int, default=None, metavar="N",
                     help="with --against: stop 'undecided' after N seeds (default: all of RUN's)")
     ev.add_argument("--resume", action="store_true",
-                    help="finish an interrupted evaluation in --out")
+                    help="finish an interrupted evaluation in --out, or extend it to more "
+                         "--episodes (the seeds already run are kept)")
     ev.add_argument("--n-action-steps", type=int, default=None,
                     help="actions executed per chunk (default: the checkpoint's)")
     ev.add_argument("--inference-steps", type=int, default=None,

@@ -61,8 +61,11 @@ class RunDir:
         self.info_path = self.path / INFO
         self.videos_dir = self.path / "videos"
 
-    def prepare(self, identity: dict[str, Any], resume: bool) -> dict[int, EpisodeRecord]:
-        """Create the folder, or check it for ``--resume``; return the episodes already done."""
+    def prepare(self, identity: dict[str, Any], resume: bool,
+                may_grow: tuple[str, ...] = ()) -> dict[int, EpisodeRecord]:
+        """Create the folder, or check it for ``--resume``; return the episodes already done.
+        A count named in `may_grow` (``episodes``: the seeds run in order, so a longer run
+        starts with the shorter one's seeds) may be larger than the folder's on resume."""
         if self.episodes_path.exists() and not resume:
             raise ValueError(f"{self.path} already holds an evaluation ({EPISODES}); pass "
                              "--resume to finish it, or choose another --out")
@@ -76,7 +79,7 @@ class RunDir:
                                  f"({e}); delete that folder, or evaluate into a new --out"
                                  ) from None
             diff = [f"{k}: {old.get(k)!r} there, {v!r} now" for k, v in identity.items()
-                    if old.get(k) != v]
+                    if old.get(k) != v and not _grows(k, old.get(k), v, may_grow)]
             if diff:
                 raise ValueError(f"cannot resume {self.path}: it holds a different evaluation ("
                                  + "; ".join(diff) + "); use the same arguments as that run, "
@@ -110,6 +113,10 @@ class RunDir:
 
     def write_info(self, info: dict[str, Any]) -> None:
         write_json_atomic(self.info_path, info)
+
+
+def _grows(key: str, old: Any, new: Any, may_grow: tuple[str, ...]) -> bool:
+    return key in may_grow and isinstance(old, int) and isinstance(new, int) and new > old
 
 
 def lock_eval_folders(out: Path, save_rollouts: str | Path | None) -> None:

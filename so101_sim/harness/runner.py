@@ -131,7 +131,10 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
             save_rollouts, resume=resume, spec=spec, image_size=tuple(rendering.render_size),
             task_arg=task_ref(spec), seeds=list(range(seed_start, seed_start + episodes)),
             eval_out=run.path, identity=identity, checkpoint_every=checkpoint_every)
-    done = {s: r for s, r in run.prepare(identity, resume).items()
+    # More episodes on --resume extend the run (same seeds first); not with a rollouts
+    # dataset, whose seed list is fixed when it is created.
+    grow = ("episodes",) if save_rollouts is None else ()
+    done = {s: r for s, r in run.prepare(identity, resume, may_grow=grow).items()
             if seed_start <= s < seed_start + episodes}
     if sink is not None:
         done = _open_rollouts(sink, resume, done, save_rollouts, log)
