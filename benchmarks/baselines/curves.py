@@ -48,7 +48,11 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"{run}: no {which} in its eval_curve.jsonl; run `so101-sim curve "
                              f"{run} --task T --episodes {args.episodes or 64}` first")
         for task in sorted({r.get("task", "pick_place") for r in rows}):
-            curve = [r for r in read_curve(run, task) if wanted(r)]
+            best: dict[int, dict] = {}  # a step measured twice (64 then 200): the larger
+            for r in read_curve(run, task):
+                if wanted(r) and r["episodes"] >= best.get(r["step"], {"episodes": 0})["episodes"]:
+                    best[r["step"]] = r
+            curve = [best[s] for s in sorted(best)]
             counts = " or ".join(str(n) for n in sorted({r["episodes"] for r in curve}))
             for r in curve:
                 r["idle_hours"] = r["step"] / rate / 3600 if rate else None
