@@ -3,8 +3,14 @@
 from __future__ import annotations
 
 import os
+import signal
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
+# A test run started in the background without job control (`nohup make test &`) inherits an
+# ignored SIGINT and passes it to every child, so the tests that stop a run with Ctrl-C would
+# hang: give the children the default (a Python child then raises KeyboardInterrupt).
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 # Sleeping OpenMP waits: spinning torch threads slow down 10x+ when env workers share the cores.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
