@@ -144,23 +144,22 @@ def test_outputs_videos_report_and_resume(tmp_path, capsys):
     # A killed run: three episodes on disk, the last line torn mid-write.
     (out / "episodes.jsonl").write_text("\n".join(lines[:3]) + "\n" + lines[3][:25])
     (out / "eval_info.json").unlink()
-    assert main(["eval", "--policy", "expert", "--episodes", "5", "--n-envs", "2",
-                 "--videos", "1", "--image-size", "48x64", "--out", str(out),
-                 "--resume"]) == 0
-    assert "(3 done, 2 to run)" in capsys.readouterr().out
-    again = json.loads((out / "eval_info.json").read_text())
-    assert [e["seed"] for e in again["per_episode"]] == list(range(100000, 100005))
-    assert _strip_times(again["per_episode"]) == _strip_times(info["per_episode"])
 
+    def resume(episodes: int, videos: int, done: int) -> None:
+        """`eval --resume`: it says how many seeds it kept; the first ones are the run's."""
+        assert main(["eval", "--policy", "expert", "--episodes", str(episodes), "--n-envs",
+                     "2", "--videos", str(videos), "--image-size", "48x64", "--out", str(out),
+                     "--resume"]) == 0
+        assert f"({done} done, {episodes - done} to run)" in capsys.readouterr().out
+        again = json.loads((out / "eval_info.json").read_text())
+        assert [e["seed"] for e in again["per_episode"]] == list(range(100000,
+                                                                       100000 + episodes))
+        assert _strip_times(again["per_episode"][:5]) == _strip_times(info["per_episode"])
+        assert again["aggregated"]["n_episodes"] == episodes
+
+    resume(5, 1, done=3)
     # More episodes on --resume extend the run: the first five are kept, two more run.
-    assert main(["eval", "--policy", "expert", "--episodes", "7", "--n-envs", "2",
-                 "--videos", "0", "--image-size", "48x64", "--out", str(out),
-                 "--resume"]) == 0
-    assert "(5 done, 2 to run)" in capsys.readouterr().out
-    longer = json.loads((out / "eval_info.json").read_text())
-    assert [e["seed"] for e in longer["per_episode"]] == list(range(100000, 100007))
-    assert _strip_times(longer["per_episode"][:5]) == _strip_times(info["per_episode"])
-    assert longer["aggregated"]["n_episodes"] == 7
+    resume(7, 0, done=5)
     with pytest.raises(ValueError, match="episodes: 7 there, 5 now"):
         evaluate("expert", episodes=5, out_dir=out, resume=True, **_quiet())
 

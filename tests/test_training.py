@@ -305,6 +305,34 @@ def test_success_curve_goes_into_the_card(dataset: Path, tiny: Path, tmp_path: P
     card = (shipped / "README.md").read_text()
     assert "![success against training](curve.png)" in card and (shipped / "curve.png").is_file()
     assert "| 4 | " in card
+    # a multi-task checkpoint: one eval per task, stored per task, one card row per task
+    from so101_sim.harness.export import recorded_eval
+
+    evals = [run / "eval_curve" / t / "step_0000004" for t in ("pick_place", "lift")]
+    suite = export_policy(run / "checkpoints" / "step_0000004" / "pretrained_model",
+                          tmp_path / "suite", evals)
+    card = (suite / "README.md").read_text()
+    assert card.startswith("# suite: Diffusion Policy for so101_sim/PickPlace-v0, tasks "
+                           "pick_place, lift")
+    for task in ("pick_place", "lift"):
+        info = json.loads(recorded_eval(suite, task).read_text())
+        assert recorded_eval(suite, task).name == f"eval_info_{task}.json"
+        assert info["config"]["task"] == task
+        assert f"| success on {task} | **{info['aggregated']['pc_success']:.1f}%**" in card
+        assert f"| {task} | 4 | " in card  # its curve row
+    assert "--task pick_place,lift" in card and not (suite / "eval_info.json").exists()
+    with pytest.raises(ValueError, match="measure a task twice"):
+        export_policy(run / "checkpoints" / "step_0000004" / "pretrained_model",
+                      tmp_path / "twice", evals + evals[:1])
+    # one `eval --task a,b` folder stands for its per-task folders
+    from so101_sim.harness.suite import evaluate_suite
+
+    ck = run / "checkpoints" / "step_0000004" / "pretrained_model"
+    evaluate_suite(str(ck), ["lift", "pick_place"], out_dir=tmp_path / "both", episodes=1,
+                   n_envs=1, progress=False, videos=0, log=lambda _: None)
+    both = export_policy(ck, tmp_path / "both_export", [tmp_path / "both"])
+    assert sorted(p.name for p in both.glob("eval_info_*.json")) == [
+        "eval_info_lift.json", "eval_info_pick_place.json"]
 
 
 def test_a_preset_variant_states_only_what_differs(tmp_path: Path) -> None:

@@ -150,9 +150,9 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     try:
         dest = export_policy(Path(args.checkpoint), Path(args.out),
-                             Path(args.eval) if args.eval else None, args.hardware,
+                             [Path(d) for d in args.eval], args.hardware,
                              [Path(d) for d in args.also_eval])
-    except FileNotFoundError as e:
+    except (FileNotFoundError, ValueError) as e:
         print(f"so101-sim export: {e}", file=sys.stderr)
         return 2
     size = sum(f.stat().st_size for f in dest.iterdir()) / 1e6

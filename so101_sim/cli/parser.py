@@ -158,8 +158,10 @@ def build_parser() -> argparse.ArgumentParser:
                                        "weights and a model card with harness numbers")
     ex.add_argument("checkpoint", help="a checkpoints/step_*/pretrained_model folder")
     ex.add_argument("--out", default="policy/pick_place_diffusion")
-    ex.add_argument("--eval", default=None, help="a `so101-sim eval --out` folder whose "
-                                                 "eval_info.json goes into the card")
+    ex.add_argument("--eval", action="append", default=[], metavar="DIR",
+                    help="a `so101-sim eval --out` folder whose eval_info.json goes into the "
+                         "card; repeat it once per task for a multi-task checkpoint (or give "
+                         "one `--task a,b` suite folder)")
     ex.add_argument("--also-eval", action="append", default=[], metavar="DIR",
                     help="more eval folders of the same checkpoint (e.g. the direct-render "
                          "path) shown in the card beside --eval; repeatable")

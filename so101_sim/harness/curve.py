@@ -98,32 +98,50 @@ def _evaluate_missing(run: Path, checkpoints: list[tuple[int, Path]], episodes: 
         append_line(run / CURVE_FILE, json.dumps(row))
 
 
+def widest_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per task and step: the one on the most seeds (a point first measured on 64
+    seeds and later extended to 200 has both rows in the file)."""
+    best: dict[tuple[str, int], dict[str, Any]] = {}
+    for r in rows:
+        key = (r.get("task", DEFAULT_TASK), r["step"])
+        if key not in best or r["episodes"] > best[key]["episodes"]:
+            best[key] = r
+    return sorted(best.values(), key=lambda r: (r["step"], r.get("task", DEFAULT_TASK)))
+
+
 def plot_curve(rows: list[dict[str, Any]], dest: Path, title: str = "",
                hours_key: str = "train_hours",
                hours_label: str = "trainer wall hours (incl. pauses)") -> Path:
     """Success (with 95% Wilson interval) against step and against training hours (the
-    trainer's wall clock, or another hours column of the rows: `hours_key`)."""
+    trainer's wall clock, or another hours column of the rows: `hours_key`); one line per task
+    when the rows hold several (a multi-task run)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
+    tasks = sorted({r.get("task", DEFAULT_TASK) for r in rows})
     for ax, key, label in ((axes[0], "step", "training step"),
                            (axes[1], hours_key, hours_label)):
-        x = [r[key] for r in rows]
-        y = [100 * r["success"] for r in rows]
-        lo = [100 * r["ci95"][0] for r in rows]
-        hi = [100 * r["ci95"][1] for r in rows]
-        ax.fill_between(x, lo, hi, alpha=0.25, color="tab:blue", label="95% Wilson interval")
-        ax.plot(x, y, "o-", color="tab:blue", label="success")
+        for i, task in enumerate(tasks):
+            mine = sorted((r for r in rows if r.get("task", DEFAULT_TASK) == task),
+                          key=lambda r: r["step"])
+            x = [r[key] for r in mine]
+            color = f"C{i}" if len(tasks) > 1 else "tab:blue"
+            ax.fill_between(x, [100 * r["ci95"][0] for r in mine],
+                            [100 * r["ci95"][1] for r in mine], alpha=0.15 if len(tasks) > 1
+                            else 0.25, color=color,
+                            label=None if len(tasks) > 1 else "95% Wilson interval")
+            ax.plot(x, [100 * r["success"] for r in mine], "o-", color=color,
+                    label=task if len(tasks) > 1 else "success")
         ax.set_xlabel(label)
         ax.set_ylim(0, 100)
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("success on evaluation seeds (%)")
     axes[0].legend(loc="upper left", fontsize=8)
     if rows:
-        n = rows[-1]["episodes"]
+        n = " or ".join(str(k) for k in sorted({r["episodes"] for r in rows}))
         fig.suptitle(title or f"closed-loop success, {n} seeds from {rows[-1]['seed_start']} "
                               "per checkpoint")
     fig.tight_layout()

@@ -2,16 +2,19 @@
 
 The card's numbers come from files, not from the person writing it: the training facts from the
 checkpoint's `so101_sim_train.json`, the training curve from the run's `train_log.jsonl`, and the
-success rate from a harness run's `eval_info.json`.
+success rate from a harness run's `eval_info.json`. A multi-task checkpoint gets one eval per
+task (`--eval` repeated, or one `--task all` suite folder), stored as `eval_info_<task>.json`
+(``recorded_eval``) and shown as one row per task.
 """
 
 from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Sequence
 from pathlib import Path
 
-from so101_sim.harness.curve import DEFAULT_TASK, plot_curve, read_curve
+from so101_sim.harness.curve import DEFAULT_TASK, plot_curve, read_curve, widest_rows
 from so101_sim.harness.results import INFO, check_eval_info
 from so101_sim.train.checkpoint import TRAIN_INFO
 from so101_sim.utils.locks import folder_lock
@@ -76,24 +79,38 @@ def _recording_note(dataset: str) -> str:
 
 
 def _success_rows(rows: list[dict]) -> list[str]:
+    tasks = sorted({r.get("task", DEFAULT_TASK) for r in rows})
+    n = " or ".join(str(k) for k in sorted({r["episodes"] for r in rows}))
     lines = ["", "Closed-loop success along training (`so101-sim curve`, each checkpoint on "
-             f"the same {rows[-1]['episodes']} evaluation seeds from {rows[-1]['seed_start']}):",
-             "", "![success against training](curve.png)", "",
-             "| step | trainer wall hours | success | 95% Wilson |", "|---|---|---|---|"]
-    lines += [f"| {r['step']} | {r['train_hours']:.2f} | {r['successes']}/{r['episodes']} | "
-              f"{100 * r['ci95'][0]:.1f}-{100 * r['ci95'][1]:.1f}% |" for r in rows]
+             f"the same {n} evaluation seeds from {rows[-1]['seed_start']}"
+             + (", per task" if len(tasks) > 1 else "") + "):",
+             "", "![success against training](curve.png)", ""]
+    col = "| task " if len(tasks) > 1 else ""
+    lines += [f"{col}| step | trainer wall hours | success | 95% Wilson |",
+              "|---" * (4 + bool(col)) + "|"]
+    for r in sorted(rows, key=lambda r: (r.get("task", DEFAULT_TASK), r["step"])):
+        cell = f"| {r.get('task', DEFAULT_TASK)} " if col else ""
+        lines.append(f"{cell}| {r['step']} | {r['train_hours']:.2f} | {r['successes']}/"
+                     f"{r['episodes']} | {100 * r['ci95'][0]:.1f}-{100 * r['ci95'][1]:.1f}% |")
     return lines
 
 
-def model_card(train_info: dict, eval_info: dict | None, curve: list[dict],
+def model_card(train_info: dict, evals: dict | list[dict] | None, curve: list[dict],
                hardware: str, also: list[dict] | None = None,
-               success_curve: list[dict] | None = None) -> str:
-    """Markdown model card from the training sidecar, the loss curve and a harness result."""
+               success_curve: list[dict] | None = None,
+               name: str = "pick_place_diffusion") -> str:
+    """Markdown model card from the training sidecar, the loss curve and harness results (one
+    per task the checkpoint answers for)."""
     t = train_info
+    evals = [evals] if isinstance(evals, dict) else list(evals or [])
+    tasks = [e["config"]["task"] for e in evals] or [DEFAULT_TASK]
     lines = [
-        "# pick_place_diffusion: Diffusion Policy for so101_sim/PickPlace-v0", "",
+        f"# {name}: Diffusion Policy for so101_sim/PickPlace-v0, "
+        + ("task " if len(tasks) == 1 else "tasks ") + ", ".join(tasks), "",
         "lerobot `DiffusionPolicy` (EMA weights, stored fp16, loaded as fp32), trained with "
-        "`so101-sim train` on scripted-expert demonstrations.", "",
+        "`so101-sim train` on scripted-expert demonstrations"
+        + (" of all these tasks, with no task input (each scene looks different)."
+           if len(tasks) > 1 else "."), "",
         "| item | value |", "|---|---|",
         f"| preset | `{t['preset']}` (policy/presets/{t['preset']}.toml) |",
         f"| data | {t['dataset_episodes']} expert episodes, {t['dataset_frames']} frames, "
@@ -107,11 +124,12 @@ def model_card(train_info: dict, eval_info: dict | None, curve: list[dict],
         "including time paused or sharing the CPU) |",
         f"| hardware | {hardware} |",
     ]
-    if eval_info:
-        lines += _eval_rows(eval_info, "success")
-        for other in also or []:
-            lines += _eval_rows(other, "also measured")
-    else:
+    for e in evals:
+        lines += _eval_rows(e, "success" if len(evals) == 1 else
+                            f"success on {e['config']['task']}")
+    for other in also or []:
+        lines += _eval_rows(other, "also measured")
+    if not evals:
         lines.append("| success | not measured yet |")
     if curve:
         lines += ["", "Training loss (mean over each logging window):", "",
@@ -120,15 +138,48 @@ def model_card(train_info: dict, eval_info: dict | None, curve: list[dict],
                   for r in curve]
     if success_curve:
         lines += _success_rows(success_curve)
-    lines += ["", "Evaluate: `so101-sim eval --policy policy/pick_place_diffusion --episodes 100`",
-              ""]
+    flag = "" if tasks == [DEFAULT_TASK] else f" --task {','.join(tasks)}"
+    lines += ["", f"Evaluate: `so101-sim eval --policy policy/{name}{flag} --episodes 100`", ""]
     return "\n".join(lines)
 
 
-def export_policy(checkpoint: Path, dest: Path, eval_dir: Path | None = None,
+def recorded_eval(folder: Path, task: str) -> Path:
+    """The harness result an export stored for `task`: ``eval_info_<task>.json`` in a multi-task
+    export, ``eval_info.json`` in a single-task one."""
+    folder = Path(folder)
+    per_task = folder / f"eval_info_{task}.json"
+    return per_task if per_task.is_file() else folder / INFO
+
+
+def _read_evals(eval_dirs: list[Path]) -> list[tuple[Path, dict]]:
+    """(path, content) of each folder's eval_info.json; a `--task a,b` suite folder stands for
+    its per-task folders."""
+    found: list[tuple[Path, dict]] = []
+    for folder in eval_dirs:
+        path = Path(folder) / INFO
+        if not path.is_file():
+            raise FileNotFoundError(f"{path} does not exist; --eval takes a `so101-sim eval "
+                                    "--out` folder")
+        data = json.loads(path.read_text())
+        if "per_task" in data:  # `so101-sim eval --task a,b`: one ordinary eval per task
+            found += _read_evals([Path(folder) / e["task_group"] for e in data["per_task"]])
+            continue
+        check_eval_info(data, path)  # the card's numbers must be what eval wrote
+        found.append((path, data))
+    tasks = [e["config"]["task"] for _, e in found]
+    if len(set(tasks)) < len(tasks):
+        raise ValueError(f"--eval folders measure a task twice ({sorted(tasks)}); give one "
+                         "eval per task (more of the same task go in --also-eval)")
+    return found
+
+
+def export_policy(checkpoint: Path, dest: Path,
+                  eval_dir: Path | Sequence[Path] | None = None,
                   hardware: str = "2-core CPU (no GPU)",
                   also_eval: list[Path] | None = None) -> Path:
-    """Copy `checkpoint` (a pretrained_model folder) to `dest` with fp16 weights and a card."""
+    """Copy `checkpoint` (a pretrained_model folder) to `dest` with fp16 weights and a card.
+
+    `eval_dir`: one eval folder, several (one per task), or a multi-task suite eval folder."""
     checkpoint, dest = Path(checkpoint), Path(dest)
     info_path = checkpoint / TRAIN_INFO
     if not (checkpoint / "model.safetensors").is_file() or not info_path.is_file():
@@ -136,40 +187,39 @@ def export_policy(checkpoint: Path, dest: Path, eval_dir: Path | None = None,
                                 f"model.safetensors and {TRAIN_INFO}); pass a "
                                 "checkpoints/step_*/pretrained_model folder")
     check_processor_files(checkpoint)  # never ship a file that would run code when loaded
+    dirs = [] if eval_dir is None else [eval_dir] if isinstance(eval_dir, (str, Path)) \
+        else list(eval_dir)
+    evals = _read_evals(dirs)
+    also = [e for _, e in _read_evals(also_eval or [])]
     # `dest` is replaced whole, so its lock lives beside it (in its parent folder)
     with folder_lock(dest.parent, f"the export {dest.name}", again="rerun",
                      name=f".{dest.name}.export.lock"):
-        return _export(checkpoint, dest, info_path, eval_dir, hardware, also_eval)
+        return _export(checkpoint, dest, info_path, evals, hardware, also)
 
 
-def _export(checkpoint: Path, dest: Path, info_path: Path, eval_dir: Path | None,
-            hardware: str, also_eval: list[Path] | None) -> Path:
-    def read_eval(folder: Path) -> dict:
-        path = Path(folder) / INFO
-        data = json.loads(path.read_text())
-        check_eval_info(data, path)  # the card's numbers must be what eval wrote
-        return data
-
+def _export(checkpoint: Path, dest: Path, info_path: Path, evals: list[tuple[Path, dict]],
+            hardware: str, also: list[dict]) -> Path:
     info = json.loads(info_path.read_text())
-    eval_info = read_eval(eval_dir) if eval_dir is not None else None
-    also = [read_eval(d) for d in also_eval or []]
+    tasks = [e["config"]["task"] for _, e in evals] or [DEFAULT_TASK]
     tmp = dest.with_name(dest.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         shutil.copytree(checkpoint, tmp, ignore=shutil.ignore_patterns("model.safetensors"))
         _fp16_copy(checkpoint / "model.safetensors", tmp / "model.safetensors")
-        if eval_dir is not None:
-            shutil.copy(Path(eval_dir) / INFO, tmp / INFO)
-        log = checkpoint.parents[2] / "train_log.jsonl"
+        for path, e in evals:
+            shutil.copy(path, tmp / (INFO if len(evals) == 1
+                                     else f"eval_info_{e['config']['task']}.json"))
+        run = checkpoint.parents[2]
+        log = run / "train_log.jsonl"
         curve = loss_curve(log) if log.is_file() else []
         curve = [r for r in curve if r["step"] <= info["step"]]
-        run = checkpoint.parents[2]
-        task = (eval_info or {}).get("config", {}).get("task", DEFAULT_TASK)
-        success_curve = [r for r in read_curve(run, task) if r["step"] <= info["step"]]
+        success_curve = widest_rows([r for task in tasks for r in read_curve(run, task)
+                                     if r["step"] <= info["step"]])
         if success_curve:
             plot_curve(success_curve, tmp / "curve.png")
-        (tmp / "README.md").write_text(model_card(info, eval_info, curve, hardware, also,
-                                                  success_curve))
+        card = model_card(info, [e for _, e in evals], curve, hardware, also, success_curve,
+                          name=dest.name)
+        (tmp / "README.md").write_text(card)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)  # a full disk: free what this run took
         raise
