@@ -23,6 +23,11 @@ catches a drop from ``baseline`` to ``true_rate`` with 80% power at alpha = 0.01
 Halving the drop roughly quadruples N. With fewer episodes the test still never fails a
 policy at its baseline more often than alpha; it just misses smaller drops.
 
+The N episodes stop early once the ones still to run can no longer change the verdict
+(curtailed sampling): after enough successes the test passes whatever the rest do, after
+enough failures it fails. The verdict is exactly the fixed-N test's, so its error rates are
+too; only the time shrinks (the reported p-value is then the bound that decided it).
+
 The paired form, ``assert_not_worse(candidate, baseline_run)``, reruns the seeds of a recorded
 ``so101-sim eval`` folder in order and fails only on a significant drop seed by seed: an
 anytime-valid sequential test stops it as soon as the answer is known, and the one-sided exact
@@ -52,12 +57,17 @@ class RateCheck:
     n: int
     baseline: float
     alpha: float
-    p_value: float
+    p_value: float  # over all n; if ran < n, the bound that decided (see line())
     ci95: tuple[float, float]
+    ran: int | None = None  # episodes run before the verdict was certain (None: all n)
+
+    @property
+    def episodes_run(self) -> int:
+        return self.n if self.ran is None else self.ran
 
     @property
     def rate(self) -> float:
-        return self.successes / self.n
+        return self.successes / self.episodes_run
 
     @property
     def passed(self) -> bool:
@@ -66,21 +76,72 @@ class RateCheck:
     def line(self) -> str:
         lo, hi = self.ci95
         verdict = "OK" if self.passed else "SIGNIFICANTLY BELOW BASELINE"
-        return (f"success {self.successes}/{self.n} = {100 * self.rate:.1f}% (95% Wilson "
-                f"{100 * lo:.1f}-{100 * hi:.1f}%), baseline {100 * self.baseline:.1f}%, "
-                f"one-sided binomial p = {self.p_value:.4g} (alpha {self.alpha}): {verdict}")
+        p, early = f"p = {self.p_value:.4g}", ""
+        if self.episodes_run < self.n:
+            p = f"p {'>=' if self.passed else '<='} {self.p_value:.4g} over all {self.n}"
+            early = (f", decided after {self.episodes_run} of {self.n} episodes (the other "
+                     f"{self.n - self.episodes_run} could not change the verdict)")
+        return (f"success {self.successes}/{self.episodes_run} = {100 * self.rate:.1f}% (95% "
+                f"Wilson {100 * lo:.1f}-{100 * hi:.1f}%){early}, baseline "
+                f"{100 * self.baseline:.1f}%, one-sided binomial {p} (alpha {self.alpha}): "
+                f"{verdict}")
 
 
 def check_success_rate(successes: int, n: int, baseline: float,
-                       alpha: float = 0.01) -> RateCheck:
-    """Test `successes`/`n` against `baseline` (fractions); see the module docstring."""
+                       alpha: float = 0.01, ran: int | None = None) -> RateCheck:
+    """Test `successes`/`n` against `baseline` (fractions); see the module docstring.
+
+    `ran` < `n`: only `ran` of the test's `n` episodes ran, and `successes` already decide
+    the test whatever the other n - ran give; raises ValueError if they do not."""
     if not 0.0 < baseline <= 1.0:
         raise ValueError(f"baseline={baseline} is invalid; expected a success rate in (0, 1] "
                          "as a fraction (0.95, not 95)")
     if not 0.0 < alpha < 0.5:
         raise ValueError(f"alpha={alpha} is invalid; expected a small level such as 0.01")
-    return RateCheck(successes, n, baseline, alpha, p_value_below(successes, n, baseline),
-                     wilson_interval(successes, n))
+    runs = n if ran is None else ran
+    if not 0 < runs <= n:
+        raise ValueError(f"ran={ran} is invalid; expected 1 to n={n} episodes")
+    verdict = curtailed_verdict(successes, runs, n, baseline, alpha)
+    if verdict is None:
+        raise ValueError(f"{successes}/{runs} of {n} episodes do not decide the test yet; "
+                         "run all of them")
+    # the p-value over all n that the unseen episodes could least move towards the other side
+    p = p_value_below(successes + (n - runs) * (verdict == "fail"), n, baseline)
+    return RateCheck(successes, n, baseline, alpha, p, wilson_interval(successes, runs),
+                     None if runs == n else runs)
+
+
+def curtailed_verdict(successes: int, ran: int, n: int, baseline: float,
+                      alpha: float) -> str | None:
+    """"pass" or "fail" if the one-sided test on `n` episodes is decided by `successes` in the
+    first `ran` of them, whatever the other n - ran give; None while it is not."""
+    if p_value_below(successes, n, baseline) >= alpha:  # even if every other one fails
+        return "pass"
+    if p_value_below(successes + n - ran, n, baseline) < alpha:  # even if every other succeeds
+        return "fail"
+    return None
+
+
+class CurtailedTest:
+    """``evaluate``'s stop hook for `assert_success_rate`: stops the run as soon as the
+    episodes still to run cannot change the fixed-size test's verdict."""
+
+    def __init__(self, n: int, baseline: float, alpha: float) -> None:
+        self.n, self.baseline, self.alpha = n, baseline, alpha
+        self.successes = self.ran = 0
+        self.verdict: str | None = None
+
+    def update(self, done: dict[int, Any]) -> bool:
+        self.ran, self.successes = len(done), sum(bool(r.success) for r in done.values())
+        self.verdict = curtailed_verdict(self.successes, self.ran, self.n, self.baseline,
+                                         self.alpha)
+        return self.verdict is not None
+
+    def to_info(self) -> dict[str, Any]:
+        return {"verdict": self.verdict or "undecided", "episodes": self.ran, "of": self.n,
+                "successes": self.successes,
+                "test": "curtailed one-sided exact binomial (the fixed-size test's verdict, "
+                        "known before every episode ran)"}
 
 
 def assert_success_rate(policy: Any, *, baseline: float, episodes: int,
@@ -89,16 +150,20 @@ def assert_success_rate(policy: Any, *, baseline: float, episodes: int,
                         out_dir: str | Path | None = None, **evaluate_kwargs: Any) -> RateCheck:
     """Evaluate `policy` ("expert", a checkpoint directory or an ``EvalPolicy``) on
     `episodes` seeds and fail the calling test if its success rate is significantly below
-    `baseline`. Returns the ``RateCheck`` when it passes."""
+    `baseline`; the run stops as soon as the seeds left cannot change that verdict.
+    Returns the ``RateCheck`` when it passes."""
     from so101_sim.harness import evaluate
 
+    check_success_rate(0, episodes, baseline, alpha, ran=episodes)  # bad arguments fail here
     evaluate_kwargs = {"videos": 0, "progress": False, "report": False, **evaluate_kwargs}
+    stop = CurtailedTest(episodes, baseline, alpha)
     with tempfile.TemporaryDirectory(prefix="so101_rate_") as tmp:
         result = evaluate(policy, task=task, episodes=episodes, n_envs=n_envs,
                           seed_start=seed_start, out_dir=out_dir or Path(tmp) / "eval",
-                          log=lambda _: None, **evaluate_kwargs)
+                          stop=stop, log=lambda _: None, **evaluate_kwargs)
     agg = result["aggregated"]
-    check = check_success_rate(agg["n_success"], agg["n_episodes"], baseline, alpha)
+    check = check_success_rate(agg["n_success"], episodes, baseline, alpha,
+                               ran=agg["n_episodes"])
     print(f"{result['config']['policy']} on {result['config']['task']}: {check.line()}; "
           f"failures {agg['failure_modes'] or 'none'}")
     if not check.passed:

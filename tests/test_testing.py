@@ -19,7 +19,7 @@ from so101_sim.harness.stats import (
     power_below,
     wilson_interval,
 )
-from so101_sim.testing import assert_success_rate, check_success_rate
+from so101_sim.testing import assert_success_rate, check_success_rate, curtailed_verdict
 
 sys.path.insert(0, str(Path(__file__).parent))
 from tiny_policy import short_task
@@ -65,6 +65,28 @@ def test_check_success_rate_fails_only_on_significant_drops():
         check_success_rate(40, 50, 95)
 
 
+def test_curtailed_verdict_is_the_full_tests_verdict_whatever_the_rest_give():
+    """Stopping early never changes the verdict: for every prefix (successes in `ran` of n), a
+    decided prefix gets the verdict every completion gets, and an undecided one has
+    completions on both sides (so it stops at the first episode that settles it)."""
+    for n, baseline in ((20, 0.7), (24, 0.805), (40, 0.24)):
+        for ran in range(1, n + 1):
+            for k in range(ran + 1):
+                full = {check_success_rate(k + extra, n, baseline).passed
+                        for extra in range(n - ran + 1)}
+                verdict = curtailed_verdict(k, ran, n, baseline, 0.01)
+                if verdict is None:
+                    assert full == {True, False}
+                else:
+                    assert full == {verdict == "pass"}
+                    early = check_success_rate(k, n, baseline, ran=ran)
+                    assert early.passed == (verdict == "pass") and early.episodes_run == ran
+    assert curtailed_verdict(97, 97, 100, 0.992, 0.01) == "pass"  # 3 failures left can't fail it
+    assert curtailed_verdict(96, 100 - 4, 100, 0.992, 0.01) is None
+    with pytest.raises(ValueError, match="do not decide"):
+        check_success_rate(5, 20, 0.7, ran=12)
+
+
 def test_assert_success_rate_fails_a_policy_that_never_succeeds(tmp_path, capsys):
     class HoldStill:
         def reset(self, seed):
@@ -77,12 +99,15 @@ def test_assert_success_rate_fails_a_policy_that_never_succeeds(tmp_path, capsys
     with pytest.raises(pytest.fail.Exception, match="success rate regression"):
         assert_success_rate(policy, baseline=0.9, episodes=4, n_envs=2,
                             task=str(short_task(tmp_path, max_steps=8)))
-    assert "success 0/4 = 0.0%" in capsys.readouterr().out
+    # 0 of 3 already fails the 4-episode test (at most 1/4 vs 0.9), so the fourth never runs
+    assert "success 0/3 = 0.0%" in (out := capsys.readouterr().out)
+    assert "decided after 3 of 4 episodes" in out
 
 
 def test_expert_success_rate_regression():
     """The project's regression test for the scripted expert (state observations, no
     rendering). 100 episodes at alpha 0.01 against 0.992 fail at 4 or more failures; they
-    catch a drop to 95% with power 0.74 and to 90% with power 0.99."""
+    catch a drop to 95% with power 0.74 and to 90% with power 0.99 (and stop once 97
+    succeed)."""
     check = assert_success_rate("expert", baseline=EXPERT_BASELINE, episodes=100, n_envs=2)
-    assert check.n == 100
+    assert check.n == 100 and 97 <= check.episodes_run <= 100
