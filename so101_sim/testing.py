@@ -93,11 +93,7 @@ def check_success_rate(successes: int, n: int, baseline: float,
 
     `ran` < `n`: only `ran` of the test's `n` episodes ran, and `successes` already decide
     the test whatever the other n - ran give; raises ValueError if they do not."""
-    if not 0.0 < baseline <= 1.0:
-        raise ValueError(f"baseline={baseline} is invalid; expected a success rate in (0, 1] "
-                         "as a fraction (0.95, not 95)")
-    if not 0.0 < alpha < 0.5:
-        raise ValueError(f"alpha={alpha} is invalid; expected a small level such as 0.01")
+    _check_level(alpha, baseline)
     runs = n if ran is None else ran
     if not 0 < runs <= n:
         raise ValueError(f"ran={ran} is invalid; expected 1 to n={n} episodes")
@@ -154,7 +150,7 @@ def assert_success_rate(policy: Any, *, baseline: float, episodes: int,
     Returns the ``RateCheck`` when it passes."""
     from so101_sim.harness import evaluate
 
-    check_success_rate(0, episodes, baseline, alpha, ran=episodes)  # bad arguments fail here
+    _check_level(alpha, baseline)  # before any episode runs
     evaluate_kwargs = {"videos": 0, "progress": False, "report": False, **evaluate_kwargs}
     stop = CurtailedTest(episodes, baseline, alpha)
     with tempfile.TemporaryDirectory(prefix="so101_rate_") as tmp:
@@ -222,8 +218,7 @@ def assert_not_worse(candidate: Any, baseline_run: str | Path, *, alpha: float =
     from so101_sim.harness.compare import check_comparable, load_run, paired_result
     from so101_sim.harness.stats import mcnemar_p_value
 
-    if not 0.0 < alpha < 0.5:
-        raise ValueError(f"alpha={alpha} is invalid; expected a small level such as 0.01")
+    _check_level(alpha)
     base = load_run(baseline_run)
     evaluate_kwargs = {"videos": 0, "progress": False, "report": False, **evaluate_kwargs}
     with tempfile.TemporaryDirectory(prefix="so101_paired_") as tmp:
@@ -246,6 +241,14 @@ def assert_not_worse(candidate: Any, baseline_run: str | Path, *, alpha: float =
         _fail(f"paired regression: {check.line()}; seeds only the baseline solved: "
               f"{r['seeds_only_b'][:20]}")
     return check
+
+
+def _check_level(alpha: float, baseline: float | None = None) -> None:
+    if baseline is not None and not 0.0 < baseline <= 1.0:
+        raise ValueError(f"baseline={baseline} is invalid; expected a success rate in (0, 1] "
+                         "as a fraction (0.95, not 95)")
+    if not 0.0 < alpha < 0.5:
+        raise ValueError(f"alpha={alpha} is invalid; expected a small level such as 0.01")
 
 
 def _fail(message: str) -> None:
