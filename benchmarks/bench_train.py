@@ -65,7 +65,7 @@ def run_ours(dataset: Path, preset: str, steps: int, batch: int, work: Path,
 def run_lerobot(dataset: Path, preset_name: str, steps: int, batch: int, work: Path,
                 workers: int) -> dict:
     preset = load_preset(preset_name)
-    d = preset.diffusion
+    d = preset.policy
     args = [str(Path(sys.executable).parent / "lerobot-train"),
             f"--dataset.repo_id=local/{dataset.name}", f"--dataset.root={dataset}",
             "--policy.type=diffusion", "--policy.device=cpu", "--policy.push_to_hub=false",

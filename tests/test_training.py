@@ -116,7 +116,8 @@ def test_batches_match_lerobot_dataset(dataset: Path, tiny: Path) -> None:
     demos = load_demos(ds, preset, None)
     ends = [int(r["dataset_to_index"]) for r in ds.meta.episodes]
     idx = np.array([0, 5, ends[0] - 9, ends[0] - 1, ends[0], ends[1] - 1])
-    ours = gather_batch(demos, idx, cfg.n_obs_steps, cfg.horizon)
+    ours = gather_batch(demos, idx, cfg.observation_delta_indices,
+                        cfg.action_delta_indices)
     for row, i in enumerate(idx):
         item = ds[int(i)]
         assert torch.equal(ours["observation.state"][row], item["observation.state"])
@@ -338,9 +339,9 @@ def test_success_curve_goes_into_the_card(dataset: Path, tiny: Path, tmp_path: P
 def test_a_preset_variant_states_only_what_differs(tmp_path: Path) -> None:
     """`base = "cpu"`: the variant is cpu.toml with its own sections' keys on top."""
     cpu, small = load_preset("cpu"), load_preset("cpu48")
-    assert small.image_size == (48, 64) and small.diffusion["crop_shape"] == (43, 58)
+    assert small.image_size == (48, 64) and small.policy["crop_shape"] == (43, 58)
     assert small.train == cpu.train and small.image_normalize == cpu.image_normalize
-    differ = {k for k in cpu.diffusion if cpu.diffusion[k] != small.diffusion[k]}
+    differ = {k for k in cpu.policy if cpu.policy[k] != small.policy[k]}
     assert differ == {"crop_shape"}
     loop = tmp_path / "loop.toml"
     loop.write_text('base = "loop.toml"\nname = "loop"\n')
@@ -350,3 +351,70 @@ def test_a_preset_variant_states_only_what_differs(tmp_path: Path) -> None:
     typo.write_text('base = "cpuu"\nname = "typo"\n')
     with pytest.raises(PresetError, match="unknown preset 'cpuu'"):
         load_preset(typo)
+    both = tmp_path / "both.toml"  # a variant of a Diffusion preset cannot turn into ACT
+    both.write_text('base = "cpu"\nname = "both"\n[act]\nchunk_size = 32\n')
+    with pytest.raises(PresetError, match=r"policy sections \['diffusion', 'act'\]; expected "
+                                          "exactly one"):
+        load_preset(both)
+
+
+def _tiny_act_preset(tmp: Path) -> Path:
+    """policy/presets/act.toml shrunk so a step takes milliseconds; same fields, same path."""
+    text = (Path(__file__).parents[1] / "policy" / "presets" / "act.toml").read_text()
+    for old, new in [('name = "act"', 'name = "tiny_act"'), ("size = [60, 80]", "size = [24, 32]"),
+                     ("batch_size = 32", "batch_size = 4"), ("steps = 30000", "steps = 4"),
+                     ("checkpoint_every = 500", "checkpoint_every = 2"),
+                     ("log_every = 50", "log_every = 1"), ("chunk_size = 32", "chunk_size = 8"),
+                     ("n_action_steps = 8", "n_action_steps = 4"),
+                     ("dim_model = 256", "dim_model = 32"), ("n_heads = 8", "n_heads = 2"),
+                     ("dim_feedforward = 1024", "dim_feedforward = 64"),
+                     ("n_encoder_layers = 4", "n_encoder_layers = 1"),
+                     ("n_vae_encoder_layers = 4", "n_vae_encoder_layers = 1")]:
+        assert old in text, old
+        text = text.replace(old, new)
+    path = tmp / "tiny_act.toml"
+    path.write_text(text)
+    return path
+
+
+def test_act_trains_from_its_preset_and_evaluates(dataset: Path, tmp_path: Path) -> None:
+    """An [act] preset trains lerobot's ACTPolicy: batches as LeRobotDataset gives them for
+    ACT (one frame, no time axis; actions t..t+chunk-1), a checkpoint lerobot loads as ACT,
+    a card that says so, and the harness runs it closed-loop."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from tiny_policy import short_task
+
+    from so101_sim.harness import evaluate
+    from so101_sim.harness.export import export_policy
+    from so101_sim.harness.policies.lerobot import LeRobotPolicy
+    from so101_sim.train.checkpoint import load_checkpoint, read_train_info
+
+    tiny_act = _tiny_act_preset(tmp_path)
+    preset = load_preset(tiny_act)
+    assert preset.policy_type == "act" and preset.train.grad_clip_norm == 10.0
+    cfg = make_config(preset, *policy_features(preset.image_size))
+    ds = LeRobotDataset(DEFAULT_REPO_ID, root=dataset,
+                        delta_timestamps={"action": [i / FPS for i in cfg.action_delta_indices]})
+    demos = load_demos(ds, preset, None)
+    assert len(demos.starts) == ds.meta.total_frames  # ACT drops no last frames
+    end = int(ds.meta.episodes[0]["dataset_to_index"])
+    idx = np.array([0, end - 3, end - 1])
+    ours = gather_batch(demos, idx, cfg.observation_delta_indices, cfg.action_delta_indices)
+    for row, i in enumerate(idx):
+        item = ds[int(i)]
+        for key in ("observation.state", "action", "action_is_pad"):
+            assert torch.equal(ours[key][row], item[key]), key
+    assert ours["observation.images.front"].shape == (3, 3, *preset.image_size)
+    assert ours["action_is_pad"][2].sum() == cfg.chunk_size - 1  # last frame: only t real
+
+    r = train(dataset, tmp_path / "run", preset_name=str(tiny_act), steps=2, progress=False)
+    assert read_train_info(r.pretrained_dir)["policy_type"] == "act"
+    loaded_cfg, _, _, _ = load_checkpoint(r.pretrained_dir, expect_type="act")
+    assert (loaded_cfg.chunk_size, loaded_cfg.n_action_steps) == (8, 4)
+    card = (export_policy(r.pretrained_dir, tmp_path / "shipped") / "README.md").read_text()
+    assert card.startswith("# shipped: ACT for") and "lerobot `ACTPolicy`" in card
+    result = evaluate(LeRobotPolicy(r.pretrained_dir, log=lambda _: None),
+                      task=short_task(tmp_path, max_steps=8), episodes=1, n_envs=1, videos=0,
+                      image_size=SMALL, out_dir=tmp_path / "eval", progress=False, report=False,
+                      log=lambda _: None)
+    assert result["per_episode"][0]["steps"] == 8

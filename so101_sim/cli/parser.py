@@ -114,10 +114,10 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--episode", type=int, default=0)
     rep.set_defaults(func=commands.cmd_replay)
 
-    tr = sub.add_parser("train", help="train a Diffusion Policy preset on a recorded dataset "
-                                      "(EMA weights, lerobot checkpoint format)")
-    tr.add_argument("--preset", default="cpu", help="preset name in policy/presets (cpu, seed) "
-                                                    "or a .toml path")
+    tr = sub.add_parser("train", help="train a Diffusion Policy (or ACT) preset on a recorded "
+                                      "dataset (EMA weights, lerobot checkpoint format)")
+    tr.add_argument("--preset", default="cpu",
+                    help="preset name in policy/presets (cpu, seed, act) or a .toml path")
     tr.add_argument("--dataset", required=True, help="LeRobotDataset folder (so101-sim record)")
     tr.add_argument("--out", required=True, help="run folder (checkpoints, log, final policy)")
     tr.add_argument("--steps", type=int, default=None, help="total steps (default: preset)")

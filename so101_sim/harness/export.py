@@ -95,6 +95,10 @@ def _success_rows(rows: list[dict]) -> list[str]:
     return lines
 
 
+#: Card title and lerobot class per policy type (sidecars from before ACT have no type).
+POLICY_NAMES = {"diffusion": ("Diffusion Policy", "DiffusionPolicy"), "act": ("ACT", "ACTPolicy")}
+
+
 def model_card(train_info: dict, evals: dict | list[dict] | None, curve: list[dict],
                hardware: str, also: list[dict] | None = None,
                success_curve: list[dict] | None = None,
@@ -104,10 +108,12 @@ def model_card(train_info: dict, evals: dict | list[dict] | None, curve: list[di
     t = train_info
     evals = [evals] if isinstance(evals, dict) else list(evals or [])
     tasks = [e["config"]["task"] for e in evals] or [DEFAULT_TASK]
+    title, cls = POLICY_NAMES.get(t.get("policy_type", "diffusion"),
+                                  (t.get("policy_type"), "policy"))
     lines = [
-        f"# {name}: Diffusion Policy for so101_sim/PickPlace-v0, "
+        f"# {name}: {title} for so101_sim/PickPlace-v0, "
         + ("task " if len(tasks) == 1 else "tasks ") + ", ".join(tasks), "",
-        "lerobot `DiffusionPolicy` (EMA weights, stored fp16, loaded as fp32), trained with "
+        f"lerobot `{cls}` (EMA weights, stored fp16, loaded as fp32), trained with "
         "`so101-sim train` on scripted-expert demonstrations"
         + (" of all these tasks, with no task input (each scene looks different)."
            if len(tasks) > 1 else "."), "",

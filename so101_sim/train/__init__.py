@@ -1,4 +1,5 @@
-"""Train: lerobot's DiffusionPolicy on a recorded dataset, fast on a CPU (``so101-sim train``).
+"""Train: lerobot's DiffusionPolicy (or ACT) on a recorded dataset, fast on a CPU
+(``so101-sim train``).
 
 ``trainer.train`` (frames decoded once by ``frame_cache``, EMA weights, resumable state in
 ``state``, thread control in ``threads``) from a preset (``presets``: ``policy/presets/*.toml``);

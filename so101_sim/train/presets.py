@@ -1,9 +1,11 @@
-"""Diffusion Policy presets (`policy/presets/*.toml`): lerobot config plus training settings.
+"""Policy presets (`policy/presets/*.toml`): a lerobot policy config plus training settings.
 
-A preset must set every `DiffusionConfig` field that changes the model or its training, so no
-lerobot default leaks in silently (0.6.1's defaults differ from the seed); the loader refuses a
-preset with a missing or unknown field. Only the features (taken from the dataset) and the hub
-bookkeeping fields are left out. A variant names ``base = "cpu"`` and sets only what differs.
+The section that holds the config names the policy: ``[diffusion]`` (`DiffusionConfig`, the
+suite's baselines) or ``[act]`` (`ACTConfig`). A preset must set every field of that config that
+changes the model or its training, so no lerobot default leaks in silently (0.6.1's defaults
+differ from the seed); the loader refuses a preset with a missing or unknown field. Only the
+features (taken from the dataset) and the hub bookkeeping fields are left out. A variant names
+``base = "cpu"`` and sets only what differs.
 """
 
 from __future__ import annotations
@@ -20,9 +22,12 @@ from so101_sim.utils.paths import policy_dir
 NOT_IN_PRESET = frozenset({"input_features", "output_features", "repo_id", "private", "tags",
                            "license", "pretrained_path", "pretrained_revision"})
 # TOML has no null: these fields use an empty value to mean None.
-_EMPTY_MEANS_NONE = {"pretrained_backbone_weights": "", "resize_shape": [], "crop_shape": []}
+_EMPTY_MEANS_NONE = {"pretrained_backbone_weights": "", "resize_shape": [], "crop_shape": [],
+                     "temporal_ensemble_coeff": ""}
 _TUPLE_FIELDS = {"down_dims", "crop_shape", "resize_shape", "optimizer_betas"}
 IMAGE_NORMALIZATIONS = ("imagenet", "dataset")
+#: Policy types a preset can train: the TOML section that holds the lerobot config's fields.
+POLICY_TYPES = ("diffusion", "act")
 
 
 class PresetError(ValueError):
@@ -42,6 +47,7 @@ class TrainSettings:
     ema_inv_gamma: float
     ema_min_decay: float
     ema_update_after_step: int
+    grad_clip_norm: float = 0.0      # 0: no clipping (the diffusion presets' recipe)
 
 
 @dataclass(frozen=True)
@@ -51,7 +57,8 @@ class Preset:
     image_size: tuple[int, int]      # frames are resized to this before the policy
     image_normalize: str             # "imagenet" or "dataset" mean/std for pixels
     train: TrainSettings
-    diffusion: dict[str, Any]        # DiffusionConfig kwargs, None/tuples restored
+    policy_type: str                 # "diffusion" or "act": lerobot's config type
+    policy: dict[str, Any]           # that config's kwargs, None/tuples restored
     path: Path
 
 
@@ -73,17 +80,20 @@ def preset_path(name_or_path: str | Path) -> Path:
     return p
 
 
-def _diffusion_fields() -> set[str]:
-    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+def config_class(policy_type: str) -> type:
+    """lerobot's config class for a policy type (`DiffusionConfig`, `ACTConfig`)."""
+    import lerobot.policies  # noqa: F401  (registers the policy config types)
+    from lerobot.configs.policies import PreTrainedConfig
 
-    return {f.name for f in dataclasses.fields(DiffusionConfig)} - NOT_IN_PRESET
+    return PreTrainedConfig.get_choice_class(policy_type)
 
 
-def _convert_diffusion(raw: dict[str, Any], where: Path) -> dict[str, Any]:
-    expected = _diffusion_fields()
+def _convert_policy(raw: dict[str, Any], policy_type: str, where: Path) -> dict[str, Any]:
+    cls = config_class(policy_type)
+    expected = {f.name for f in dataclasses.fields(cls)} - NOT_IN_PRESET
     missing, unknown = expected - raw.keys(), raw.keys() - expected
     if missing or unknown:
-        raise PresetError(f"{where}: [diffusion] must set every DiffusionConfig field exactly "
+        raise PresetError(f"{where}: [{policy_type}] must set every {cls.__name__} field exactly "
                           f"once; missing {sorted(missing)}, unknown {sorted(unknown)}. Add the "
                           "missing ones explicitly (lerobot's defaults differ from the seed).")
     out: dict[str, Any] = {}
@@ -132,29 +142,34 @@ def load_preset(name_or_path: str | Path) -> Preset:
         size = tuple(int(v) for v in images["size"])
         norm = images["normalize"]
         settings = TrainSettings(**train)
-        diffusion = _convert_diffusion(raw["diffusion"], path)
         name, description = raw["name"], raw.get("description", "")
     except KeyError as e:
         raise PresetError(f"{path}: missing key {e}; a preset needs name, [images] size/normalize, "
-                          "[train] and [diffusion] (see policy/presets/seed.toml)") from None
+                          "[train] and [diffusion] or [act] (see policy/presets/seed.toml)"
+                          ) from None
     except TypeError as e:
         raise PresetError(f"{path}: bad [train] section ({e}); compare with "
                           "policy/presets/seed.toml") from None
+    sections = [t for t in POLICY_TYPES if t in raw]
+    if len(sections) != 1:
+        raise PresetError(f"{path}: has policy sections {sections}; expected exactly one of "
+                          f"{['[' + t + ']' for t in POLICY_TYPES]}, which names the policy to "
+                          "train (see policy/presets/cpu.toml and act.toml)")
+    policy_type = sections[0]
+    policy = _convert_policy(raw[policy_type], policy_type, path)
     if len(size) != 2 or min(size) < 16:
         raise PresetError(f"{path}: [images] size {list(size)} must be [height, width], each >= 16")
     if norm not in IMAGE_NORMALIZATIONS:
         raise PresetError(f"{path}: [images] normalize {norm!r} must be one of "
                           f"{IMAGE_NORMALIZATIONS}")
     return Preset(name=name, description=description, image_size=size, image_normalize=norm,
-                  train=settings, diffusion=diffusion, path=path)
+                  train=settings, policy_type=policy_type, policy=policy, path=path)
 
 
 def make_config(preset: Preset, input_features: dict, output_features: dict):
-    """Build lerobot's `DiffusionConfig` from a preset and the dataset's features."""
-    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
-
-    return DiffusionConfig(input_features=input_features, output_features=output_features,
-                           **preset.diffusion)
+    """Build the preset's lerobot config (`DiffusionConfig`, `ACTConfig`) for these features."""
+    return config_class(preset.policy_type)(input_features=input_features,
+                                            output_features=output_features, **preset.policy)
 
 
 def policy_features(image_size: tuple[int, int], cameras: tuple[str, ...] = ("front", "side"),

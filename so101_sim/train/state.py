@@ -68,9 +68,12 @@ def list_checkpoints(out: Path) -> list[Path]:
 
 
 def architecture(preset: Preset) -> dict[str, Any]:
-    """What a preset fixes about the model: its DiffusionConfig fields and image size."""
-    arch = json.loads(json.dumps(preset.diffusion, default=str))
+    """What a preset fixes about the model: its config's fields and image size (and the policy
+    type where it is not diffusion, so runs from before ACT compare equal)."""
+    arch = json.loads(json.dumps(preset.policy, default=str))
     arch["image_size"] = list(preset.image_size)
+    if preset.policy_type != "diffusion":
+        arch["policy_type"] = preset.policy_type
     return arch
 
 

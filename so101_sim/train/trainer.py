@@ -1,4 +1,5 @@
-"""Train lerobot's DiffusionPolicy on a recorded LeRobotDataset, fast on CPU, with EMA weights.
+"""Train a lerobot policy (DiffusionPolicy; ACT) on a recorded LeRobotDataset, fast on CPU, with
+EMA weights.
 
 What differs from `lerobot-train`: frames are decoded and resized once into memory
 (`frame_cache`), batches are gathered by array indexing with lerobot's padding rules, an EMA copy
@@ -77,7 +78,6 @@ class DemoArrays:
 
 def load_demos(dataset, preset: Preset, cache_dir: Path | None) -> DemoArrays:
     """Read a LeRobotDataset into `DemoArrays` for `preset` (frames resized to its image size)."""
-    cfg = preset.diffusion
     hf = dataset.hf_dataset.with_format("numpy")
     state = np.asarray(hf["observation.state"], dtype=np.float32)
     action = np.asarray(hf["action"], dtype=np.float32)
@@ -88,7 +88,7 @@ def load_demos(dataset, preset: Preset, cache_dir: Path | None) -> DemoArrays:
     ep_from = np.empty(len(index), dtype=np.int64)
     ep_to = np.empty(len(index), dtype=np.int64)
     starts = []
-    drop = int(cfg["drop_n_last_frames"])
+    drop = int(preset.policy.get("drop_n_last_frames", 0))  # ACT samples every frame
     for row in dataset.meta.episodes:
         lo, hi = int(row["dataset_from_index"]), int(row["dataset_to_index"])
         ep_from[lo:hi], ep_to[lo:hi] = lo, hi
@@ -97,16 +97,20 @@ def load_demos(dataset, preset: Preset, cache_dir: Path | None) -> DemoArrays:
     return DemoArrays(state, action, frames, ep_from, ep_to, np.concatenate(starts))
 
 
-def gather_batch(demos: DemoArrays, idx: np.ndarray, n_obs: int, horizon: int) -> dict:
+def gather_batch(demos: DemoArrays, idx: np.ndarray, obs_offsets: list[int] | None,
+                 act_offsets: list[int]) -> dict:
     """A training batch centred on frames `idx`, padded at episode edges as lerobot does.
 
-    Observation steps are t-n_obs+1..t and action steps t-n_obs+1..t-n_obs+horizon; indices
-    outside the episode repeat its edge frame and are flagged in `action_is_pad`.
+    The offsets are the config's `observation_delta_indices` and `action_delta_indices`
+    (Diffusion: observations t-n_obs+1..t, actions from t-n_obs+1 on; ACT: None, the frame t
+    alone with no time axis, and actions t..t+chunk-1). Indices outside the episode repeat its
+    edge frame and are flagged in `action_is_pad`.
     """
     lo, hi = demos.episode_from[idx, None], demos.episode_to[idx, None] - 1
-    obs_raw = idx[:, None] + np.arange(1 - n_obs, 1)[None]
-    act_raw = idx[:, None] + np.arange(1 - n_obs, 1 - n_obs + horizon)[None]
-    obs_i = np.clip(obs_raw, lo, hi)
+    obs_i = np.clip(idx[:, None] + np.asarray(obs_offsets or [0])[None], lo, hi)
+    if obs_offsets is None:
+        obs_i = obs_i[:, 0]  # one frame, no time axis
+    act_raw = idx[:, None] + np.asarray(act_offsets)[None]
     act_i = np.clip(act_raw, lo, hi)
     batch: dict[str, Any] = {
         "observation.state": torch.from_numpy(demos.state[obs_i]),
@@ -165,8 +169,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     """
     from diffusers.optimization import get_scheduler
     from diffusers.training_utils import EMAModel
-    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
-    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
     preset = load_preset(preset_name)
     ts = preset.train
@@ -212,15 +215,18 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     cfg = make_config(preset, *policy_features(preset.image_size, cams,
                                                dataset.meta.features["action"]["shape"][0]))
     cfg.device = device
-    policy = DiffusionPolicy(cfg)
+    policy = get_policy_class(cfg.type)(cfg)
     policy.to(device)
     policy.train()
     pre, post = make_pre_post_processors(cfg, dataset_stats=normalization_stats(dataset, preset))
-    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=cfg.optimizer_lr,
-                                  betas=cfg.optimizer_betas, eps=cfg.optimizer_eps,
-                                  weight_decay=cfg.optimizer_weight_decay)
-    scheduler = get_scheduler(cfg.scheduler_name, optimizer=optimizer,
-                              num_warmup_steps=cfg.scheduler_warmup_steps,
+    # lerobot's AdamW settings for the policy type (ACT: a parameter group for the backbone);
+    # clipping only where the preset asks (grad_clip_norm > 0), as the diffusion runs had none.
+    opt = cfg.get_optimizer_preset()
+    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=opt.lr, betas=opt.betas,
+                                  eps=opt.eps, weight_decay=opt.weight_decay)
+    # Diffusion: its cosine with warm-up; ACT has no schedule in lerobot: a constant lr.
+    scheduler = get_scheduler(getattr(cfg, "scheduler_name", "constant"), optimizer=optimizer,
+                              num_warmup_steps=getattr(cfg, "scheduler_warmup_steps", 0),
                               num_training_steps=steps)
     ema = EMAModel(policy.parameters(), decay=ts.ema_max_decay, min_decay=ts.ema_min_decay,
                    update_after_step=ts.ema_update_after_step, use_ema_warmup=True,
@@ -272,7 +278,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                                        ["shape"][:2]),
             "policy_image_size": list(preset.image_size),
             "image_pipeline": "so101_sim.utils.image_pipeline.resize_frames (bilinear, antialias)",
-            "weights": "EMA", "batch_size": batch_size,
+            "policy_type": cfg.type, "weights": "EMA", "batch_size": batch_size,
             "precision": precision, "precision_history": precision_history, "total_steps": steps,
             "device": device,
             "train_settings": asdict(ts)}
@@ -283,7 +289,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
         stop["signal"] = signum
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    n_obs, horizon = cfg.n_obs_steps, cfg.horizon
+    obs_offsets, act_offsets = cfg.observation_delta_indices, cfg.action_delta_indices
 
     def save(at_step: int, wall: float, loss: float) -> Path:
         ck = out / "checkpoints" / f"step_{at_step:07d}"
@@ -327,9 +333,11 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
         while step < end and stop["signal"] is None:
             t_step = time.perf_counter()
             idx = rng.choice(demos.starts, size=batch_size)
-            batch = pre(gather_batch(demos, idx, n_obs, horizon))
+            batch = pre(gather_batch(demos, idx, obs_offsets, act_offsets))
             optimizer.zero_grad(set_to_none=True)
             loss_val = run_parts(batch_loss, batch, tuner.parts if tuner else 1)
+            if ts.grad_clip_norm > 0:
+                torch.nn.utils.clip_grad_norm_(policy.parameters(), ts.grad_clip_norm)
             optimizer.step()
             scheduler.step()
             ema.step(policy.parameters())
