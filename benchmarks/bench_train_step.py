@@ -36,7 +36,7 @@ def child(preset_name: str, steps: int, warmup: int, opts: dict) -> dict:
     import torch
 
     sys.path.insert(0, str(ROOT))
-    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+    from lerobot.policies.factory import get_policy_class
 
     from so101_sim.train.presets import load_preset, make_config, policy_features
     from so101_sim.train.threads import BatchParts
@@ -46,18 +46,20 @@ def child(preset_name: str, steps: int, warmup: int, opts: dict) -> dict:
     torch.manual_seed(0)
     preset = load_preset(preset_name)
     cfg = make_config(preset, *policy_features(preset.image_size))
-    policy = DiffusionPolicy(cfg)
+    policy = get_policy_class(cfg.type)(cfg)  # DiffusionPolicy, or ACTPolicy for --preset act
     policy.train()
     if opts.get("channels_last"):
         policy = policy.to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(policy.parameters(), lr=1e-4)
-    b, n_obs, h = preset.train.batch_size, cfg.n_obs_steps, cfg.horizon
+    b, h = preset.train.batch_size, len(cfg.action_delta_indices)
+    # the shapes the trainer's batches have: ACT's observations carry no time axis
+    t = () if cfg.observation_delta_indices is None else (len(cfg.observation_delta_indices),)
     gen = torch.Generator().manual_seed(0)
-    batch = {"observation.state": torch.rand(b, n_obs, 6, generator=gen) * 2 - 1,
+    batch = {"observation.state": torch.rand(b, *t, 6, generator=gen) * 2 - 1,
              "action": torch.rand(b, h, 6, generator=gen) * 2 - 1,
              "action_is_pad": torch.zeros(b, h, dtype=torch.bool)}
     for cam in ("front", "side"):
-        img = torch.rand(b, n_obs, 3, *preset.image_size, generator=gen)
+        img = torch.rand(b, *t, 3, *preset.image_size, generator=gen)
         batch[f"observation.images.{cam}"] = img
 
     forward = policy.forward
@@ -95,7 +97,8 @@ def child(preset_name: str, steps: int, warmup: int, opts: dict) -> dict:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--preset", default="cpu")
+    p.add_argument("--preset", default="cpu",
+                   help="preset, or a comma list timed one after the other (e.g. cpu,act)")
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--warmup", type=int, default=5)
     p.add_argument("--variants", default=",".join(VARIANTS))
@@ -110,12 +113,13 @@ def main() -> None:
     print(f"preset {args.preset}, {args.steps} timed steps after {args.warmup} warm-up, "
           f"load average {os.getloadavg()[0]:.2f} at start")
     rows = []
-    for name in args.variants.split(","):
+    presets = args.preset.split(",")
+    for preset, name in ((pr, v) for pr in presets for v in args.variants.split(",")):
         for busy in (False, True) if args.busy else (False,):
-            r = subprocess.run([sys.executable, __file__, "--preset", args.preset, "--steps",
+            r = subprocess.run([sys.executable, __file__, "--preset", preset, "--steps",
                                 str(args.steps), "--warmup", str(args.warmup), "--child", name]
                                + (["--busy"] if busy else []), capture_output=True, text=True)
-            label = f"{name}, busy" if busy else name
+            label = (f"{preset} " if len(presets) > 1 else "") + name + (", busy" if busy else "")
             if r.returncode != 0:
                 print(f"{label}: failed: {r.stderr.strip().splitlines()[-1]}")
                 continue
