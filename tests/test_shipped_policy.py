@@ -1,7 +1,7 @@
-"""Every shipped baseline checkpoint (policy/baselines.toml): it loads through lerobot, and its
-success rate on each task it answers for has not regressed against the rate the harness
-measured when it was exported (a multi-task checkpoint is tested once per task, on as many
-seeds as that task's rate needs for the test to be able to fail)."""
+"""Every shipped checkpoint (policy/baselines.toml's, and eval's default): it loads through
+lerobot, and its success rate on each task it answers for has not regressed against the rate
+the harness measured when it was exported (a multi-task checkpoint is tested once per task, on
+as many seeds as that task's rate needs for the test to be able to fail)."""
 
 from __future__ import annotations
 
@@ -11,13 +11,16 @@ from pathlib import Path
 import pytest
 
 from so101_sim.harness.baselines import baselines
+from so101_sim.harness.curve import DEFAULT_TASK
 from so101_sim.harness.export import recorded_eval
 from so101_sim.harness.stats import critical_successes, power_below, wilson_interval
 from so101_sim.testing import assert_success_rate
-from so101_sim.utils.paths import policy_dir
+from so101_sim.utils.paths import policy_dir, shipped_policy_dir
 
-SHIPPED = sorted((task, policy_dir() / entry["checkpoint"])
-                 for task, entry in baselines().items() if "checkpoint" in entry)
+# the baselines, and the default policy of `so101-sim eval` (pick_place_diffusion) on its task
+SHIPPED = sorted({(task, policy_dir() / entry["checkpoint"])
+                  for task, entry in baselines().items() if "checkpoint" in entry}
+                 | {(DEFAULT_TASK, shipped_policy_dir())})
 FOLDERS = sorted({folder for _, folder in SHIPPED})
 pytestmark = pytest.mark.skipif(
     not any((folder / "model.safetensors").is_file() for folder in FOLDERS),
@@ -76,7 +79,7 @@ def test_shipped_policy_loads_fp32_through_lerobot(folder: Path) -> None:
         assert f"{agg['pc_success']:.1f}%" in card  # the card shows the measured number
 
 
-@pytest.mark.parametrize(("task", "folder"), SHIPPED, ids=[t for t, _ in SHIPPED])
+@pytest.mark.parametrize(("task", "folder"), SHIPPED, ids=[f"{t}-{f.name}" for t, f in SHIPPED])
 def test_shipped_policy_success_rate_regression(task: str, folder: Path) -> None:
     """The first `seeds_for` recorded evaluation seeds, tested against the lower end of the
     recorded rate's Wilson interval (the baseline's own noise cannot fail CI) at alpha 0.01."""
