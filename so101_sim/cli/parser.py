@@ -120,7 +120,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="preset name in policy/presets (cpu, seed, act) or a .toml path")
     tr.add_argument("--dataset", required=True, help="LeRobotDataset folder (so101-sim record)")
     tr.add_argument("--out", required=True, help="run folder (checkpoints, log, final policy)")
-    tr.add_argument("--steps", type=int, default=None, help="total steps (default: preset)")
+    tr.add_argument("--steps", type=int, default=None,
+                    help="total steps (default: preset); with --resume, a larger value "
+                         "stretches the lr schedule from the checkpoint on")
     tr.add_argument("--batch-size", type=int, default=None, help="default: preset")
     tr.add_argument("--stop-at", type=int, default=None, metavar="STEP",
                     help="pause at this step with a checkpoint; the schedule stays sized for "
