@@ -22,22 +22,27 @@ SMALL = (48, 64)
 FPS = 30
 
 
-def _tiny_preset(tmp: Path) -> Path:
-    """The cpu preset shrunk so a step takes milliseconds; same fields, same code path."""
-    text = (Path(__file__).parents[1] / "policy" / "presets" / "cpu.toml").read_text()
-    for old, new in [('name = "cpu"', 'name = "tiny"'), ("size = [60, 80]", "size = [24, 32]"),
-                     ("batch_size = 32", "batch_size = 4"), ("steps = 10000", "steps = 4"),
+def _shrunk_preset(tmp: Path, preset: str, name: str, edits: list[tuple[str, str]]) -> Path:
+    """policy/presets/<preset>.toml with `edits` applied (each must match), written as <name>."""
+    text = (Path(__file__).parents[1] / "policy" / "presets" / f"{preset}.toml").read_text()
+    for old, new in [(f'name = "{preset}"', f'name = "{name}"'),
+                     ("size = [60, 80]", "size = [24, 32]"), ("batch_size = 32", "batch_size = 4"),
                      ("checkpoint_every = 500", "checkpoint_every = 2"),
-                     ("log_every = 50", "log_every = 1"), ("crop_shape = [54, 72]",
-                                                           "crop_shape = [22, 30]"),
-                     ("down_dims = [48, 96, 192]", "down_dims = [16, 32, 64]"),
-                     ("diffusion_step_embed_dim = 64", "diffusion_step_embed_dim = 16"),
-                     ("spatial_softmax_num_keypoints = 32", "spatial_softmax_num_keypoints = 8")]:
+                     ("log_every = 50", "log_every = 1"), *edits]:
         assert old in text, old
         text = text.replace(old, new)
-    path = tmp / "tiny.toml"
+    path = tmp / f"{name}.toml"
     path.write_text(text)
     return path
+
+
+def _tiny_preset(tmp: Path) -> Path:
+    """The cpu preset shrunk so a step takes milliseconds; same fields, same code path."""
+    return _shrunk_preset(tmp, "cpu", "tiny", [
+        ("steps = 10000", "steps = 4"), ("crop_shape = [54, 72]", "crop_shape = [22, 30]"),
+        ("down_dims = [48, 96, 192]", "down_dims = [16, 32, 64]"),
+        ("diffusion_step_embed_dim = 64", "diffusion_step_embed_dim = 16"),
+        ("spatial_softmax_num_keypoints = 32", "spatial_softmax_num_keypoints = 8")])
 
 
 @pytest.fixture(scope="module")
@@ -360,21 +365,12 @@ def test_a_preset_variant_states_only_what_differs(tmp_path: Path) -> None:
 
 def _tiny_act_preset(tmp: Path) -> Path:
     """policy/presets/act.toml shrunk so a step takes milliseconds; same fields, same path."""
-    text = (Path(__file__).parents[1] / "policy" / "presets" / "act.toml").read_text()
-    for old, new in [('name = "act"', 'name = "tiny_act"'), ("size = [60, 80]", "size = [24, 32]"),
-                     ("batch_size = 32", "batch_size = 4"), ("steps = 30000", "steps = 4"),
-                     ("checkpoint_every = 500", "checkpoint_every = 2"),
-                     ("log_every = 50", "log_every = 1"), ("chunk_size = 32", "chunk_size = 8"),
-                     ("n_action_steps = 8", "n_action_steps = 4"),
-                     ("dim_model = 256", "dim_model = 32"), ("n_heads = 8", "n_heads = 2"),
-                     ("dim_feedforward = 1024", "dim_feedforward = 64"),
-                     ("n_encoder_layers = 4", "n_encoder_layers = 1"),
-                     ("n_vae_encoder_layers = 4", "n_vae_encoder_layers = 1")]:
-        assert old in text, old
-        text = text.replace(old, new)
-    path = tmp / "tiny_act.toml"
-    path.write_text(text)
-    return path
+    return _shrunk_preset(tmp, "act", "tiny_act", [
+        ("steps = 30000", "steps = 4"), ("chunk_size = 32", "chunk_size = 8"),
+        ("n_action_steps = 8", "n_action_steps = 4"), ("dim_model = 256", "dim_model = 32"),
+        ("n_heads = 8", "n_heads = 2"), ("dim_feedforward = 1024", "dim_feedforward = 64"),
+        ("n_encoder_layers = 4", "n_encoder_layers = 1"),
+        ("n_vae_encoder_layers = 4", "n_vae_encoder_layers = 1")])
 
 
 def test_act_trains_from_its_preset_and_evaluates(dataset: Path, tmp_path: Path) -> None:
