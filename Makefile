@@ -47,8 +47,13 @@ demo: $(STAMP)
 		$(VENV)/bin/so101-sim eval --policy expert --episodes 20 --n-envs 2 --videos 2 \
 			--out outputs/eval/demo; fi
 
+# Two pytest workers: most tests wait on one single-threaded start-up (imports, spawning env
+# workers), so one worker leaves a core idle about half the time. The Ray tests share one
+# worker (group "ray"): a second local cluster would join the first.
+TEST_WORKERS ?= 2
+
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_env.py

@@ -36,3 +36,11 @@ def state_env():
     env = PickPlaceEnv(obs_type="state")
     yield env
     env.close()
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Keep every Ray test on one xdist worker (`make test` runs `--dist loadgroup`): a second
+    local Ray runtime on this machine would join the first instead of starting its own."""
+    for item in items:
+        if item.path.name.startswith("test_ray_"):
+            item.add_marker(pytest.mark.xdist_group("ray"))
