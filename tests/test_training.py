@@ -16,6 +16,7 @@ from so101_sim.dataset import DEFAULT_REPO_ID
 from so101_sim.record import record
 from so101_sim.train import trainer
 from so101_sim.train.presets import PresetError, load_preset, make_config, policy_features
+from so101_sim.train.state import list_checkpoints
 from so101_sim.train.trainer import TrainError, gather_batch, load_demos, train
 
 SMALL = (48, 64)
@@ -288,6 +289,42 @@ def test_resume_refuses_a_preset_whose_architecture_changed(dataset: Path, tiny:
                                          r"\[16, 32, 32\]\)"):
         train(dataset, tmp_path / "run", preset_name=str(preset), steps=4, resume=True,
               progress=False)
+
+
+def test_init_from_starts_a_new_run_from_a_checkpoint(dataset: Path, tiny: Path,
+                                                     tmp_path: Path) -> None:
+    """--init-from: a new run begins at the checkpoint's weights (its first warm-up step has lr
+    0, so one step keeps them bit for bit), every sidecar and the card say where it started,
+    and a checkpoint that cannot fit is refused in one line."""
+    fixed = {"progress": False, "threads": 1, "log_every": 1}
+    base = train(dataset, tmp_path / "base", preset_name=str(tiny), steps=2, **fixed)
+    tuned = train(dataset, tmp_path / "tuned", preset_name=str(tiny), steps=4, stop_at=1,
+                  init_from=base.pretrained_dir, **fixed)
+    a, b = _weights(base.pretrained_dir), _weights(tuned.pretrained_dir)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    resumed = train(dataset, tmp_path / "tuned", preset_name=str(tiny), steps=4, resume=True,
+                    **fixed)
+    c = _weights(resumed.pretrained_dir)
+    assert any(not torch.equal(a[k], c[k]) for k in a)  # it then trains
+    for ck in (tuned.pretrained_dir, resumed.pretrained_dir):
+        started = json.loads((ck / "so101_sim_train.json").read_text())["init_from"]
+        assert started["path"] == str(base.pretrained_dir.resolve()) and started["step"] == 2
+    from so101_sim.harness.export import export_policy
+
+    card = (export_policy(resumed.pretrained_dir, tmp_path / "shipped") / "README.md").read_text()
+    assert "| started from | `pretrained_model`, step 2 (model.safetensors sha256" in card
+    with pytest.raises(TrainError, match=r"--resume continues .* drop one of them"):
+        train(dataset, tmp_path / "tuned", preset_name=str(tiny), steps=4, resume=True,
+              init_from=base.pretrained_dir, **fixed)
+    shipped = Path(__file__).parents[1] / "policy" / "suite_diffusion"
+    with pytest.raises(TrainError, match="does not fit the preset's 'diffusion' architecture "
+                                         r"\(size mismatch for "):
+        train(dataset, tmp_path / "other", preset_name=str(tiny), steps=2, init_from=shipped,
+              **fixed)
+    with pytest.raises(TrainError, match=r"--init-from: policy checkpoint .* has no config\.json"):
+        train(dataset, tmp_path / "other", preset_name=str(tiny), steps=2,
+              init_from=tmp_path / "base", **fixed)
+    assert not list_checkpoints(tmp_path / "other")
 
 
 def test_success_curve_goes_into_the_card(dataset: Path, tiny: Path, tmp_path: Path) -> None:

@@ -130,6 +130,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "at equal steps)")
     tr.add_argument("--resume", action="store_true",
                     help="continue from the last checkpoint in --out, exactly")
+    tr.add_argument("--init-from", default=None, metavar="CHECKPOINT",
+                    help="start a new run from this checkpoint's weights (fine-tuning, e.g. "
+                         "policy/suite_diffusion on more demos); same preset architecture; "
+                         "the optimiser, schedule and normalisation start fresh")
     tr.add_argument("--threads", type=int, default=None,
                     help="torch CPU threads, fixed and bitwise repeatable (default on CPU: "
                          "all cores when idle; with another job busy, the batch in one part "

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from so101_sim.harness.curve import DEFAULT_TASK, plot_curve, read_curve, widest_rows
 from so101_sim.harness.results import INFO, check_eval_info
-from so101_sim.train.checkpoint import TRAIN_INFO
+from so101_sim.train.checkpoint import TRAIN_INFO, checkpoint_name
 from so101_sim.utils.locks import folder_lock
 from so101_sim.utils.trust import check_processor_files
 
@@ -125,6 +125,10 @@ def model_card(train_info: dict, evals: dict | list[dict] | None, curve: list[di
         f"| policy input | 2 cameras resized to {t['policy_image_size'][0]}x"
         f"{t['policy_image_size'][1]} by {t['image_pipeline']} |",
         f"| steps | {t['step']} of {t['total_steps']} planned, batch {t['batch_size']} |",
+        *([f"| started from | `{checkpoint_name(Path(t['init_from']['path']))}`, step "
+           f"{t['init_from'].get('step')} (model.safetensors sha256 "
+           f"{t['init_from']['model_sha256']}), fine-tuned on the data above |"]
+          if t.get("init_from") else []),
         f"| precision | {_precision(t)} |",
         f"| trainer wall time | {t['train_wall_s'] / 3600:.2f} h (while the trainer ran, "
         "including time paused or sharing the CPU) |",

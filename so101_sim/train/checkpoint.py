@@ -116,6 +116,36 @@ def read_train_info(path: str | Path) -> dict[str, Any] | None:
     return info
 
 
+def init_weights_from(policy: Any, path: str | Path) -> dict[str, Any]:
+    """Copy the weights of the checkpoint at `path` into `policy` (a new run that fine-tunes it).
+
+    Only ``config.json`` (its policy type) and ``model.safetensors`` are read: tensors, no code.
+    The architecture must match exactly; the new run keeps its own dataset's normalisation.
+    Returns what the run records about where it started.
+    """
+    import hashlib
+
+    from safetensors.torch import load_file
+
+    path = Path(path).expanduser()
+    check_files(path)
+    then = load_config(path)
+    if then.type != policy.config.type:
+        raise ValueError(f"{path} holds a {then.type!r} policy; the preset builds a "
+                         f"{policy.config.type!r} one: start from a checkpoint of the same type")
+    try:
+        policy.load_state_dict(load_file(path / "model.safetensors"), strict=True)
+    except RuntimeError as exc:  # missing/unexpected keys or shapes: another architecture
+        first = str(exc).splitlines()[1 if len(str(exc).splitlines()) > 1 else 0].strip()
+        raise ValueError(f"{path / 'model.safetensors'} does not fit the preset's "
+                         f"{policy.config.type!r} architecture ({first[:200]}); start from a "
+                         "checkpoint trained with the same preset") from None
+    digest = hashlib.sha256((path / "model.safetensors").read_bytes()).hexdigest()[:16]
+    info = read_train_info(path) or {}
+    return {"path": str(path.resolve()), "model_sha256": digest, "step": info.get("step"),
+            "preset": info.get("preset"), "dataset": info.get("dataset")}
+
+
 def load_checkpoint(path: str | Path, device: str = "cpu",
                     expect_type: str | None = None) -> tuple[Any, Any, Any, Any]:
     """(config, policy in eval mode, preprocessor, postprocessor) of a checkpoint folder."""

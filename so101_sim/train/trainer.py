@@ -37,6 +37,7 @@ import torch
 from tqdm import tqdm
 
 from so101_sim.dataset.reader import NotADatasetError, open_lerobot_dataset
+from so101_sim.train.checkpoint import init_weights_from
 from so101_sim.train.frame_cache import load_frames
 from so101_sim.train.presets import Preset, load_preset, make_config, policy_features
 from so101_sim.train.state import (
@@ -157,7 +158,8 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
           batch_size: int | None = None, resume: bool = False, keep_checkpoints: int = 3,
           progress: bool = True, log_every: int | None = None,
           precision: str = "fp32", device: str = "cpu",
-          threads: int | None = None, stop_at: int | None = None) -> TrainResult:
+          threads: int | None = None, stop_at: int | None = None,
+          init_from: Path | None = None) -> TrainResult:
     """Train `preset_name` on the dataset at `dataset_dir`; see the module docstring.
 
     `device` is auto|cpu|cuda|mps (`devices.resolve_device`); `precision` fp32|bf16|auto.
@@ -166,6 +168,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     the thread pool.
     `stop_at`: save and return at this step while the schedule stays sized for `steps`, so a
     short run is the prefix of the long one (`resume=True` later continues it exactly).
+    `init_from`: a checkpoint folder whose weights a new run starts from (fine-tuning).
     """
     from diffusers.optimization import get_scheduler
     from diffusers.training_utils import EMAModel
@@ -201,6 +204,9 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
         what = "does not exist" if not existed else "holds no checkpoint with a training_state.pt"
         raise TrainError(f"--resume: {out} {what}, so there is nothing to continue; check --out, "
                          "or start a new run without --resume")
+    if resume and init_from is not None:
+        raise TrainError(f"--init-from starts a new run from a checkpoint's weights and --resume "
+                         f"continues {out} from its own: drop one of them")
     try:
         dataset = open_lerobot_dataset(dataset_dir)
     except NotADatasetError as exc:
@@ -216,6 +222,12 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                                                dataset.meta.features["action"]["shape"][0]))
     cfg.device = device
     policy = get_policy_class(cfg.type)(cfg)
+    started_from = None  # a fine-tuning run's starting checkpoint (recorded in every sidecar)
+    if init_from is not None:
+        try:
+            started_from = init_weights_from(policy, init_from)
+        except (FileNotFoundError, ValueError) as e:
+            raise TrainError(f"--init-from: {e}") from None
     policy.to(device)
     policy.train()
     pre, post = make_pre_post_processors(cfg, dataset_stats=normalization_stats(dataset, preset))
@@ -255,6 +267,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             torch.cuda.set_rng_state(state["cuda_rng"].cpu())
         rng.bit_generator.state = state["numpy_rng"]
         step, wall_before = state["step"], state["wall_s"]
+        started_from = state.get("init_from")
         history = state.get("precision_history", [[0, state.get("precision", "fp32")]])
         if history[-1][1] != precision:
             print(f"so101-sim train: precision changed {history[-1][1]} -> {precision} at step "
@@ -278,9 +291,9 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                                        ["shape"][:2]),
             "policy_image_size": list(preset.image_size),
             "image_pipeline": "so101_sim.utils.image_pipeline.resize_frames (bilinear, antialias)",
-            "policy_type": cfg.type, "weights": "EMA", "batch_size": batch_size,
-            "precision": precision, "precision_history": precision_history, "total_steps": steps,
-            "device": device,
+            "policy_type": cfg.type, "weights": "EMA", "init_from": started_from,
+            "batch_size": batch_size, "precision": precision,
+            "precision_history": precision_history, "total_steps": steps, "device": device,
             "train_settings": asdict(ts)}
 
     stop = {"signal": None}
@@ -305,6 +318,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                            else {}),
                         "step": at_step, "steps": steps, "wall_s": wall,
                         "preset": preset.name, "precision_history": precision_history,
+                        "init_from": started_from,
                         "preset_arch": architecture(preset),
                         "dataset": str(Path(dataset_dir).resolve())}, ck / "training_state.tmp")
         except BaseException:
