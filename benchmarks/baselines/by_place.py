@@ -72,14 +72,17 @@ def main(argv: list[str] | None = None) -> int:
     task = tasks.pop()
     ang = bearings(task, seeds)
     edges = np.quantile(ang, np.linspace(0, 1, args.bins + 1))
-    which = np.clip(np.searchsorted(edges, ang, side="right") - 1, 0, args.bins - 1)
+
+    def bin_of(values: np.ndarray) -> np.ndarray:
+        return np.clip(np.searchsorted(edges, values, side="right") - 1, 0, args.bins - 1)
+
+    which = bin_of(ang)
     demo_bins = None
     if args.demos is not None:
         from so101_sim.dataset import stored_seeds
 
         d_ang = bearings(task, sorted(stored_seeds(args.demos)))
-        demo_bins = np.bincount(np.clip(np.searchsorted(edges, d_ang, side="right") - 1, 0,
-                                        args.bins - 1), minlength=args.bins)
+        demo_bins = np.bincount(bin_of(d_ang), minlength=args.bins)
 
     names = [p.stem if p.is_file() else p.name for p in args.evals]
     head = ["bearing (deg)", "n", *names, "95% CI (last)", "failures (last)"]

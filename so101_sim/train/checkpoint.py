@@ -125,7 +125,7 @@ def init_weights_from(policy: Any, path: str | Path) -> dict[str, Any]:
     """
     import hashlib
 
-    from safetensors.torch import load_file
+    from safetensors.torch import load
 
     path = Path(path).expanduser()
     check_files(path)
@@ -133,14 +133,16 @@ def init_weights_from(policy: Any, path: str | Path) -> dict[str, Any]:
     if then.type != policy.config.type:
         raise ValueError(f"{path} holds a {then.type!r} policy; the preset builds a "
                          f"{policy.config.type!r} one: start from a checkpoint of the same type")
+    raw = (path / "model.safetensors").read_bytes()  # read once: loaded and fingerprinted
     try:
-        policy.load_state_dict(load_file(path / "model.safetensors"), strict=True)
+        policy.load_state_dict(load(raw), strict=True)
     except RuntimeError as exc:  # missing/unexpected keys or shapes: another architecture
-        first = str(exc).splitlines()[1 if len(str(exc).splitlines()) > 1 else 0].strip()
+        lines = str(exc).splitlines()  # torch: a header line, then one line per mismatch
+        first = (lines[1:] or lines)[0].strip()[:200]
         raise ValueError(f"{path / 'model.safetensors'} does not fit the preset's "
-                         f"{policy.config.type!r} architecture ({first[:200]}); start from a "
+                         f"{policy.config.type!r} architecture ({first}); start from a "
                          "checkpoint trained with the same preset") from None
-    digest = hashlib.sha256((path / "model.safetensors").read_bytes()).hexdigest()[:16]
+    digest = hashlib.sha256(raw).hexdigest()[:16]
     info = read_train_info(path) or {}
     return {"path": str(path.resolve()), "model_sha256": digest, "step": info.get("step"),
             "preset": info.get("preset"), "dataset": info.get("dataset")}
