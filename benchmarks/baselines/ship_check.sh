@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Is a suite checkpoint better than the shipped policy/suite_diffusion? (README.md, "Shipping")
+# Is a suite checkpoint better than the shipped policy/suite_diffusion? (README.md here, "Recipe")
 #   bash benchmarks/baselines/ship_check.sh CHECKPOINT OUT_DIR
 # Exports CHECKPOINT as the shipped copy would be (fp16), evaluates that copy on the six tasks'
 # 200 evaluation seeds (from 100000, as the shipped card's), compares it seed by seed with the
