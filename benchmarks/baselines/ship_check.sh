@@ -26,3 +26,4 @@ for t in $tasks; do
   "$sim" compare "$out/eval/$t" "$out/shipped/$t" --out "$out/compare/$t"
 done
 "$sim" export "$ckpt" --out "$out/suite_diffusion" "${evals[@]}"
+"$repo/.venv/bin/python" "$here/ship_table.py" "$out"
