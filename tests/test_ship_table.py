@@ -11,7 +11,6 @@ import pytest
 from so101_sim.cli import main
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "baselines" / "ship_table.py"
-TASKS = ("pick_place", "lift", "stack", "tidy", "pick_place_anywhere", "pick_place_dr")
 
 
 def _ship_table():
@@ -19,6 +18,10 @@ def _ship_table():
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+SHIP_TABLE = _ship_table()
+TASKS = SHIP_TABLE.shipped_tasks(SHIP_TABLE.SHIPPED)
 
 
 def _eval(folder: Path, task: str, name: str, ok: list[bool]) -> Path:
@@ -55,7 +58,7 @@ def _ship_dir(root: Path, candidate: dict[str, int]) -> Path:
 def test_ship_rule(tmp_path, capsys, deltas, verdict):
     out = _ship_dir(tmp_path, {t: deltas.get(t, 0) for t in TASKS})
     capsys.readouterr()
-    assert _ship_table().main([str(out)]) == 0
+    assert SHIP_TABLE.main([str(out)]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[-1].startswith(verdict)
     rows = {line.split(" | ")[0][2:]: line for line in lines[2:-1]}
@@ -69,12 +72,18 @@ def test_ship_rule(tmp_path, capsys, deltas, verdict):
 def test_missing_tasks_leave_it_undecided(tmp_path, capsys):
     out = _ship_dir(tmp_path, {"pick_place": 20})
     capsys.readouterr()
-    _ship_table().main([str(out)])
+    SHIP_TABLE.main([str(out)])
     last = capsys.readouterr().out.strip().splitlines()[-1]
-    assert last.startswith("undecided: not evaluated yet on lift, stack, tidy")
+    assert last.startswith("undecided: not evaluated yet on lift, pick_place_anywhere, "
+                           "pick_place_dr, stack, tidy")
+
+
+def test_the_tasks_are_the_shipped_cards():
+    assert TASKS == ["lift", "pick_place", "pick_place_anywhere", "pick_place_dr", "stack",
+                     "tidy"]
 
 
 def test_a_folder_without_comparisons_is_one_line(tmp_path):
     with pytest.raises(SystemExit) as exc:
-        _ship_table().main([str(tmp_path)])
+        SHIP_TABLE.main([str(tmp_path)])
     assert "no compare/<task>/compare.json" in str(exc.value) and "ship_check.sh" in str(exc.value)

@@ -16,7 +16,13 @@ import json
 import sys
 from pathlib import Path
 
-TASKS = ("pick_place", "lift", "stack", "tidy", "pick_place_anywhere", "pick_place_dr")
+SHIPPED = Path(__file__).resolve().parents[2] / "policy" / "suite_diffusion"
+
+
+def shipped_tasks(shipped: Path) -> list[str]:
+    """The tasks the shipped card was measured on (its ``eval_info_<task>.json`` files), so a
+    task added to the card is one more a candidate must be checked on."""
+    return sorted(p.stem.removeprefix("eval_info_") for p in shipped.glob("eval_info_*.json"))
 
 
 def _row(out: Path, task: str, alpha: float) -> tuple[str, str]:
@@ -43,8 +49,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("out", type=Path, help="the OUT_DIR given to ship_check.sh")
     ap.add_argument("--alpha", type=float, default=0.05,
                     help="two-sided McNemar level for 'measurably' (default 0.05)")
+    ap.add_argument("--shipped", type=Path, default=SHIPPED,
+                    help="the shipped checkpoint whose card sets the tasks (default %(default)s)")
     args = ap.parse_args(argv)
-    done = [t for t in TASKS if (args.out / "compare" / t / "compare.json").is_file()]
+    tasks = shipped_tasks(args.shipped)
+    if not tasks:
+        sys.exit(f"{args.shipped}: no eval_info_<task>.json; expected a shipped checkpoint "
+                 "with its card's evaluations (policy/suite_diffusion)")
+    done = [t for t in tasks if (args.out / "compare" / t / "compare.json").is_file()]
     if not done:
         sys.exit(f"{args.out}: no compare/<task>/compare.json; expected the OUT_DIR of a "
                  "ship_check.sh run (run it first: bash benchmarks/baselines/ship_check.sh "
@@ -58,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         print(row)
     better = [t for t, v in verdicts.items() if v == "better"]
     worse = [t for t, v in verdicts.items() if v == "worse"]
-    missing = [t for t in TASKS if t not in verdicts]
+    missing = [t for t in tasks if t not in verdicts]
     if missing:
         print(f"undecided: not evaluated yet on {', '.join(missing)} (rerun ship_check.sh; "
               "finished tasks are skipped)")
