@@ -57,6 +57,56 @@ def test_temporal_ensembling_matches_lerobots_own_select_action(tmp_path):
         np.testing.assert_allclose(got[0, 0], want[0], rtol=1e-5, atol=1e-4)
 
 
+def _actions(policy: LeRobotPolicy, steps: int) -> np.ndarray:
+    """Each forward's executed actions for two envs fed the same random frames."""
+    policy.start_episode(0, 100_000)
+    policy.start_episode(1, 100_001)
+    rng = np.random.default_rng(1)
+    out = []
+    for _ in range(steps):
+        a, b = _obs(rng), _obs(rng)
+        out.append(policy.predict_chunks([ChunkRequest(0, 100_000, [a]),
+                                          ChunkRequest(1, 100_001, [b])]))
+    return np.stack(out)
+
+
+def test_temporal_ensemble_flag_switches_a_checkpoint_either_way(tmp_path):
+    """`--temporal-ensemble 0.01` on a chunk-wise checkpoint acts exactly like the same weights
+    saved with ensembling, and `off` turns an ensembling checkpoint back into chunks."""
+    chunked = make_tiny_act_checkpoint(tmp_path / "chunked", SIZE, seed=3)
+    ensembled = make_tiny_act_checkpoint(tmp_path / "te", SIZE, temporal_ensemble_coeff=0.01,
+                                         seed=3)
+    messages: list[str] = []
+    switched_on = LeRobotPolicy(chunked, temporal_ensemble_coeff=0.01, batch_size=2,
+                                log=messages.append)
+    assert switched_on.info.n_action_steps == 1
+    assert any("temporal_ensemble_coeff=None; using 0.01 as asked" in m for m in messages)
+    native = LeRobotPolicy(ensembled, batch_size=2, log=lambda _: None)
+    on = _actions(switched_on, 9)  # one step past a full chunk of 8
+    assert on.shape == (9, 2, 1, 6)
+    np.testing.assert_array_equal(on, _actions(native, 9))
+
+    switched_off = LeRobotPolicy(ensembled, temporal_ensemble_coeff="off", n_action_steps=8,
+                                 batch_size=2, log=lambda _: None)
+    assert switched_off.info.n_action_steps == 8 and switched_off.ensemble is None
+    off = _actions(switched_off, 3)
+    plain = LeRobotPolicy(chunked, batch_size=2, log=lambda _: None)
+    np.testing.assert_array_equal(off, _actions(plain, 3))
+    assert not np.array_equal(off[:, :, 0], on[:3, :, 0])  # ensembling did change the actions
+    # runs with and without the flag are told apart (compare and --resume read the fingerprint)
+    assert switched_on.info.fingerprint != plain.info.fingerprint
+
+
+def test_temporal_ensemble_flag_refuses_what_cannot_run(tmp_path):
+    ensembled = make_tiny_act_checkpoint(tmp_path / "te", SIZE, temporal_ensemble_coeff=0.01)
+    with pytest.raises(ValueError, match="drop --n-action-steps"):
+        LeRobotPolicy(ensembled, temporal_ensemble_coeff=0.02, n_action_steps=8)
+    with pytest.raises(ValueError, match="add --temporal-ensemble off"):
+        LeRobotPolicy(ensembled, n_action_steps=8)
+    with pytest.raises(ValueError, match="expected a finite coefficient"):
+        LeRobotPolicy(ensembled, temporal_ensemble_coeff=float("nan"))
+
+
 def test_a_language_policy_gets_the_task_description(tmp_path):
     from lerobot.configs import FeatureType, PolicyFeature
     from lerobot.policies.factory import make_pre_post_processors

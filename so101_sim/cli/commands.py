@@ -80,6 +80,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     options = {k: v for k, v in (("n_action_steps", args.n_action_steps),
                                  ("num_inference_steps", args.inference_steps),
                                  ("noise_scheduler", args.noise_scheduler),
+                                 ("temporal_ensemble_coeff", args.temporal_ensemble),
                                  ("batch_size", args.policy_batch),
                                  ("precision", args.precision),
                                  ("camera_map", args.camera_map)) if v is not None}

@@ -29,6 +29,18 @@ def parse_steps(text: str) -> list[int]:
         ) from None
 
 
+def parse_ensemble_coeff(text: str) -> float | str:
+    """`--temporal-ensemble 0.01` -> 0.01; `off` -> "off" (chunk-wise)."""
+    if text == "off":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--temporal-ensemble {text!r}: expected a coefficient such as 0.01, or 'off'"
+        ) from None
+
+
 def parse_camera_map_arg(text: str) -> dict[str, str]:
     """argparse type for --camera-map (see so101_sim.harness.camera_map)."""
     from so101_sim.harness.camera_map import parse_camera_map
@@ -227,6 +239,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help="diffusion denoising steps (default: the checkpoint's)")
     ev.add_argument("--noise-scheduler", choices=["DDIM", "DDPM"], default=None,
                     help="diffusion sampler (default: the checkpoint's)")
+    ev.add_argument("--temporal-ensemble", type=parse_ensemble_coeff, default=None,
+                    metavar="COEFF",
+                    help="ACT: temporal ensembling with this coefficient (0.01 in ACT's paper): "
+                         "a forward every step, chunks averaged with weights exp(-COEFF*i); "
+                         "'off' runs an ensembling checkpoint chunk-wise (with "
+                         "--n-action-steps); default: the checkpoint's (lerobot-eval's "
+                         "--policy.temporal_ensemble_coeff)")
     ev.add_argument("--threads", type=int, default=None,
                     help="torch CPU threads for the policy's forwards (default: half the cores, "
                          "at least 1: the env workers render on the rest, and a busy "

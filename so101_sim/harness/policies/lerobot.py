@@ -62,8 +62,9 @@ PRECISIONS = ("fp32", "bf16")
 class LeRobotPolicy:
     """Loads a lerobot checkpoint directory and answers batched chunk requests.
 
-    ``n_action_steps``, ``num_inference_steps`` and ``noise_scheduler`` override the
-    checkpoint's inference settings (with a warning); None keeps the checkpoint's.
+    ``n_action_steps``, ``num_inference_steps`` and ``noise_scheduler`` (diffusion) and
+    ``temporal_ensemble_coeff`` (ACT) override the checkpoint's inference settings (with a
+    warning); None keeps the checkpoint's.
     ``batch_size``: rows per forward (see the module docstring); 1 = one forward per env.
     ``camera_map``: policy camera name -> env camera, for checkpoints whose cameras are named
     after another rig (``so101_sim.harness.camera_map``). ``task_description`` goes into every
@@ -78,6 +79,7 @@ class LeRobotPolicy:
 
     def __init__(self, path: str | Path, *, n_action_steps: int | None = None,
                  num_inference_steps: int | None = None, noise_scheduler: str | None = None,
+                 temporal_ensemble_coeff: float | str | None = None,
                  batch_size: int = DEFAULT_BATCH, device: str = "cpu",
                  camera_map: dict[str, str] | None = None, task_description: str = "",
                  precision: str = "fp32", log: Callable[[str], None] = print) -> None:
@@ -98,7 +100,8 @@ class LeRobotPolicy:
         self.cameras = tuple(c for c in CAMERAS if c in self.camera_map.values())
         renamed = shown_camera_map(self.camera_map)  # renamed, or sharing one env camera
         asked = {"n_action_steps": n_action_steps, "num_inference_steps": num_inference_steps,
-                 "noise_scheduler_type": noise_scheduler}
+                 "noise_scheduler_type": noise_scheduler,
+                 "temporal_ensemble_coeff": temporal_ensemble_coeff}
         self.is_diffusion = cfg.type == "diffusion"
         check_processor_files(self.path, cfg.type)  # before lerobot instantiates any step
         self._apply_settings(cfg, {k: v for k, v in asked.items() if v is not None})
@@ -141,13 +144,19 @@ class LeRobotPolicy:
             if asked.get("noise_scheduler_type", "DDIM") not in ("DDIM", "DDPM"):
                 raise ValueError(f"noise_scheduler={asked['noise_scheduler_type']!r} is invalid; "
                                  "expected 'DDIM' or 'DDPM'")
+            if "temporal_ensemble_coeff" in asked:
+                raise ValueError(f"--temporal-ensemble applies to ACT policies; {self.path} is "
+                                 "a 'diffusion' policy (it executes --n-action-steps of each "
+                                 "chunk)")
         else:
-            other = sorted(set(asked) - {"n_action_steps"})
+            other = sorted(set(asked) - {"n_action_steps", "temporal_ensemble_coeff"})
             if other:
                 raise ValueError(f"{other} apply to diffusion policies; {self.path} is a "
                                  f"{cfg.type!r} policy")
-            if "n_action_steps" in asked and not hasattr(cfg, "n_action_steps"):
-                raise ValueError(f"{cfg.type!r} policies have no n_action_steps to override")
+            for key in ("n_action_steps", "temporal_ensemble_coeff"):
+                if key in asked and not hasattr(cfg, key):
+                    raise ValueError(f"{cfg.type!r} policies have no {key} to override")
+            self._ensemble_settings(asked, getattr(cfg, "temporal_ensemble_coeff", None))
         for key, value in asked.items():
             if getattr(cfg, key) != value:
                 self.log(f"so101-sim eval: warning: checkpoint {self.path} says "
@@ -178,6 +187,28 @@ class LeRobotPolicy:
             self.ensemble = SlotEnsemblers(coeff, cfg.chunk_size)
         self.n_obs_steps = n_obs
         self.n_action_steps = 1 if coeff is not None else int(getattr(cfg, "n_action_steps", 1))
+
+    def _ensemble_settings(self, asked: dict[str, Any], saved: float | None) -> None:
+        """Temporal ensembling executes one action per forward, as lerobot's ACTConfig requires."""
+        coeff = asked.get("temporal_ensemble_coeff")
+        if coeff == "off":  # chunk-wise: --n-action-steps (default the checkpoint's) per forward
+            asked["temporal_ensemble_coeff"] = None
+            return
+        if coeff is None:
+            if saved is not None and asked.get("n_action_steps", 1) != 1:
+                raise ValueError(f"--n-action-steps {asked['n_action_steps']}: {self.path} "
+                                 f"ensembles temporally (temporal_ensemble_coeff={saved}), one "
+                                 "action per forward; add --temporal-ensemble off to run it "
+                                 "chunk-wise")
+            return
+        if isinstance(coeff, str) or not np.isfinite(coeff):
+            raise ValueError(f"--temporal-ensemble {coeff} is invalid; expected a finite "
+                             "coefficient (0.01 in ACT's paper) or 'off'")
+        if asked.get("n_action_steps", 1) != 1:
+            raise ValueError(f"--n-action-steps {asked['n_action_steps']} with "
+                             "--temporal-ensemble: ensembling executes one action per forward; "
+                             "drop --n-action-steps")
+        asked["n_action_steps"] = 1
 
     def _details(self) -> dict[str, str]:
         cfg = self.cfg
