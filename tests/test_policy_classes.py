@@ -3,6 +3,9 @@ ensembling (a forward every step, one ensembler per env), and a policy that read
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -105,6 +108,34 @@ def test_temporal_ensemble_flag_refuses_what_cannot_run(tmp_path):
         LeRobotPolicy(ensembled, n_action_steps=8)
     with pytest.raises(ValueError, match="expected a finite coefficient"):
         LeRobotPolicy(ensembled, temporal_ensemble_coeff=float("nan"))
+
+
+def test_curve_with_temporal_ensembling_is_a_curve_of_its_own(tmp_path):
+    """`so101-sim curve --temporal-ensemble`: its rows and evaluations sit beside the
+    checkpoint's own curve, each skipped when already measured."""
+    from so101_sim.harness.curve import evaluate_curve, read_curve
+
+    run = tmp_path / "run"
+    make_tiny_act_checkpoint(run / "checkpoints" / "step_0000002" / "pretrained_model", SIZE)
+    task = str(short_task(tmp_path, max_steps=12))
+    kw = {"episodes": 1, "n_envs": 1, "progress": False, "task": task}
+    te = {"temporal_ensemble_coeff": 0.01}
+    own = evaluate_curve(run, **kw)
+    ensembled = evaluate_curve(run, policy_options=te, **kw)
+    assert [r["step"] for r in own] == [2] and "variant" not in own[0]
+    assert [(r["step"], r["variant"]) for r in ensembled] == [(2, "temporal_ensemble_coeff=0.01")]
+    assert read_curve(run, task) == own  # the default curve stays the checkpoint's
+    assert len(read_curve(run, task, variant=None)) == 2
+    assert evaluate_curve(run, policy_options=te, **kw) == ensembled  # nothing left to run
+    details = {}
+    stem = Path(task).stem
+    for folder in (stem, f"{stem}-temporal_ensemble_coeff=0.01"):
+        info = json.loads((run / "eval_curve" / folder / "step_0000002" / "eval_info.json")
+                          .read_text())
+        details[folder] = info["config"]["policy_details"]
+    assert "temporal ensembling" not in details[stem]
+    assert details[f"{stem}-temporal_ensemble_coeff=0.01"]["temporal ensembling"] == (
+        "coefficient 0.01, a forward every step")
 
 
 def test_a_language_policy_gets_the_task_description(tmp_path):

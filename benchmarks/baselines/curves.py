@@ -29,6 +29,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=None,
                         help="only curve rows of this many seeds (default: every row)")
     parser.add_argument("--plots", type=Path, default=HERE, help="where the PNGs go")
+    parser.add_argument("--variant", default="",
+                        help="the curve of `so101-sim curve --temporal-ensemble C` "
+                             "(temporal_ensemble_coeff=C); default: the checkpoints' own setting")
     parser.add_argument("--idle-steps-per-s", type=float, default=None,
                         help="training steps per second on an idle CPU: hours = step / this")
     args = parser.parse_args(argv)
@@ -42,21 +45,22 @@ def main(argv: list[str] | None = None) -> int:
         return args.episodes is None or row.get("episodes") == args.episodes
 
     for run in args.runs:
-        rows = [r for r in read_curve(run) if wanted(r)]
+        rows = [r for r in read_curve(run, variant=args.variant) if wanted(r)]
         if not rows:
             which = f"{args.episodes}-seed rows" if args.episodes else "rows"
             raise SystemExit(f"{run}: no {which} in its eval_curve.jsonl; run `so101-sim curve "
                              f"{run} --task T --episodes {args.episodes or 64}` first")
         for task in sorted({r.get("task", "pick_place") for r in rows}):
             best: dict[int, dict] = {}  # a step measured twice (64 then 200): the larger
-            for r in read_curve(run, task):
+            for r in read_curve(run, task, args.variant):
                 if wanted(r) and r["episodes"] >= best.get(r["step"], {"episodes": 0})["episodes"]:
                     best[r["step"]] = r
             curve = [best[s] for s in sorted(best)]
             counts = " or ".join(str(n) for n in sorted({r["episodes"] for r in curve}))
             for r in curve:
                 r["idle_hours"] = r["step"] / rate / 3600 if rate else None
-            png = plot_curve(curve, args.plots / f"{run.name}_{task}.png",
+            name = f"{run.name}_{task}" + (f"_{args.variant}" if args.variant else "")
+            png = plot_curve(curve, args.plots / f"{name}.png",
                              hours_key=hours[0], hours_label=hours[1],
                              title=f"run {run.name}, task {task}: {counts} seeds from "
                                    f"{curve[-1]['seed_start']} per checkpoint")

@@ -124,7 +124,9 @@ def cmd_curve(args: argparse.Namespace) -> int:
 
     run = Path(args.run)
     rows = evaluate_curve(run, episodes=args.episodes, every=args.every, n_envs=args.n_envs,
-                          seed_start=args.seed_start, steps=args.steps, task=args.task)
+                          seed_start=args.seed_start, steps=args.steps, task=args.task,
+                          policy_options=({"temporal_ensemble_coeff": args.temporal_ensemble}
+                                          if args.temporal_ensemble is not None else None))
     for r in rows:
         print(f"step {r['step']:>7} ({r['train_hours']:.2f} h): {r['successes']}/"
               f"{r['episodes']} = {100 * r['success']:.1f}% (95% CI {100 * r['ci95'][0]:.1f}-"

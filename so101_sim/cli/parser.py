@@ -170,6 +170,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="only these checkpoint steps, comma-separated (e.g. 8000,12000)")
     cu.add_argument("--task", default="pick_place",
                     help="task to evaluate on (a multi-task run has one curve per task)")
+    cu.add_argument("--temporal-ensemble", type=parse_ensemble_coeff, default=None,
+                    metavar="COEFF", help="ACT: evaluate with temporal ensembling (as `eval "
+                    "--temporal-ensemble`); a separate curve from the checkpoints' own setting")
     cu.set_defaults(func=commands.cmd_curve)
 
     ex = sub.add_parser("export", help="copy a trained checkpoint to a shippable folder: fp16 "

@@ -4,7 +4,9 @@
 pretrained_model`` of a `so101-sim train` run (every one, or every `--every` steps), on the
 same seeds each time, and appends one line per checkpoint and task to ``RUN/eval_curve.jsonl``
 (task, step, CPU-hours of training so far, successes, Wilson interval). A multi-task run has one
-curve per task. Checkpoints already in the file
+curve per task. Inference settings other than the checkpoint's own (``--temporal-ensemble``)
+make a separate curve: its rows carry ``variant`` (e.g. ``temporal_ensemble_coeff=0.01``) and
+its evaluations go to ``eval_curve/<task>-<variant>/``. Checkpoints already in the file
 are skipped, so it can be rerun as training goes on. ``plot_curve`` draws it (success with
 its interval against step and against training hours) for the model card.
 """
@@ -37,9 +39,16 @@ def run_checkpoints(run: Path) -> list[tuple[int, Path]]:
     return sorted(found)
 
 
-def read_curve(run: Path, task: str | None = None) -> list[dict[str, Any]]:
+def curve_variant(policy_options: dict[str, Any] | None) -> str:
+    """The label of a curve evaluated with these inference settings ("" = the checkpoint's)."""
+    return ",".join(f"{k}={v}" for k, v in sorted((policy_options or {}).items()))
+
+
+def read_curve(run: Path, task: str | None = None,
+               variant: str | None = "") -> list[dict[str, Any]]:
     """The run's curve rows by step; only `task`'s if given (rows written before curves had a
-    task are pick_place's, the only task then)."""
+    task are pick_place's, the only task then), and only `variant`'s (default: the
+    checkpoint's own settings; None: every variant)."""
     path = run / CURVE_FILE
     if not path.is_file():
         return []
@@ -51,14 +60,18 @@ def read_curve(run: Path, task: str | None = None) -> list[dict[str, Any]]:
             continue  # a line torn by a kill: that checkpoint is evaluated again
     if task is not None:
         rows = [r for r in rows if r.get("task", DEFAULT_TASK) == task]
+    if variant is not None:
+        rows = [r for r in rows if r.get("variant", "") == variant]
     return sorted(rows, key=lambda r: r["step"])
 
 
 def evaluate_curve(run: str | Path, *, episodes: int = 32, every: int = 0, n_envs: int = 8,
                    seed_start: int = 100_000, steps: list[int] | None = None,
-                   task: str = DEFAULT_TASK, progress: bool = True) -> list[dict[str, Any]]:
+                   task: str = DEFAULT_TASK, progress: bool = True,
+                   policy_options: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """Evaluate the run's checkpoints not yet in its curve file; return the whole curve.
-    Two curves of one run at once are refused (a training run may go on beside it)."""
+    `policy_options` (``load_policy``'s, e.g. ``temporal_ensemble_coeff``) make a separate
+    curve. Two curves of one run at once are refused (a training run may go on beside it)."""
     run = Path(run)
     checkpoints = run_checkpoints(run)
     if not checkpoints:
@@ -66,25 +79,29 @@ def evaluate_curve(run: str | Path, *, episodes: int = 32, every: int = 0, n_env
                          "folder of a `so101-sim train` run")
     with folder_lock(run, "the learning curve", again="rerun", name=CURVE_LOCK):
         _evaluate_missing(run, checkpoints, episodes, every, n_envs, seed_start, steps, task,
-                          progress)
-    return [r for r in read_curve(run, task)
+                          progress, policy_options or {})
+    return [r for r in read_curve(run, task, curve_variant(policy_options))
             if r.get("episodes") == episodes and r.get("seed_start") == seed_start]
 
 
 def _evaluate_missing(run: Path, checkpoints: list[tuple[int, Path]], episodes: int,
                       every: int, n_envs: int, seed_start: int, steps: list[int] | None,
-                      task: str, progress: bool) -> None:
+                      task: str, progress: bool, options: dict[str, Any]) -> None:
+    from so101_sim.harness.policies.factory import load_policy
     from so101_sim.harness.runner import evaluate
 
-    done = {r["step"] for r in read_curve(run, task) if r.get("episodes") == episodes
+    variant = curve_variant(options)
+    done = {r["step"] for r in read_curve(run, task, variant) if r.get("episodes") == episodes
             and r.get("seed_start") == seed_start}
     chosen = [(s, p) for s, p in checkpoints
               if (steps is None or s in steps) and (every <= 0 or s % every == 0)
               and s not in done]
     for step, path in chosen:
         info = read_train_info(path) or {}
-        out = run / "eval_curve" / task / f"step_{step:07d}"
-        result = evaluate(str(path), task=task, episodes=episodes, n_envs=n_envs,
+        name = Path(task).stem  # a task given as a .toml path: its file name
+        out = run / "eval_curve" / (f"{name}-{variant}" if variant else name) / f"step_{step:07d}"
+        policy = load_policy(str(path), task=task, **options) if options else str(path)
+        result = evaluate(policy, task=task, episodes=episodes, n_envs=n_envs,
                           seed_start=seed_start, out_dir=out, videos=0, resume=out.exists(),
                           progress=progress, report=False)
         agg = result["aggregated"]
@@ -94,7 +111,8 @@ def _evaluate_missing(run: Path, checkpoints: list[tuple[int, Path]], episodes: 
                "train_hours": round(info.get("train_wall_s", 0) / 3600, 3),
                "episodes": episodes, "seed_start": seed_start, "successes": k,
                "success": k / episodes, "ci95": [round(lo, 4), round(hi, 4)],
-               "failure_modes": agg.get("failure_modes", {})}
+               "failure_modes": agg.get("failure_modes", {}),
+               **({"variant": variant} if variant else {})}
         append_line(run / CURVE_FILE, json.dumps(row))
 
 

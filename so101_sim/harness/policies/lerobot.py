@@ -219,6 +219,9 @@ class LeRobotPolicy:
             d["sampler"] = f"{cfg.noise_scheduler_type}-{steps}, noise seeded per episode"
         else:
             d["observations / chunk executed"] = f"{self.n_obs_steps} / {self.n_action_steps}"
+            if self.ensemble is not None:
+                d["temporal ensembling"] = (f"coefficient {cfg.temporal_ensemble_coeff}, "
+                                            "a forward every step")
         if any(p != e for p, e in self.camera_map.items()):
             d["cameras"] = describe_camera_map(self.camera_map)
         d["batched inference"] = (f"padded to {self.batch_size} rows per forward"
