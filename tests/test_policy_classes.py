@@ -136,6 +136,13 @@ def test_curve_with_temporal_ensembling_is_a_curve_of_its_own(tmp_path):
     assert "temporal ensembling" not in details[stem]
     assert details[f"{stem}-temporal_ensemble_coeff=0.01"]["temporal ensembling"] == (
         "coefficient 0.01, a forward every step")
+    # The CLI draws each curve into its own plot (both measured above: nothing runs here).
+    from so101_sim.cli import main
+
+    args = ["curve", str(run), "--task", task, "--episodes", "1", "--n-envs", "1"]
+    assert main(args) == 0 and main([*args, "--temporal-ensemble", "0.01"]) == 0
+    assert sorted(p.name for p in run.glob("eval_curve*.png")) == [
+        f"eval_curve_{stem}-temporal_ensemble_coeff=0.01.png", f"eval_curve_{stem}.png"]
 
 
 def test_a_language_policy_gets_the_task_description(tmp_path):

@@ -120,19 +120,25 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_curve(args: argparse.Namespace) -> int:
-    from so101_sim.harness.curve import evaluate_curve, plot_curve
+    from so101_sim.harness.curve import curve_variant, evaluate_curve, plot_curve
 
     run = Path(args.run)
+    options = ({"temporal_ensemble_coeff": args.temporal_ensemble}
+               if args.temporal_ensemble is not None else None)
     rows = evaluate_curve(run, episodes=args.episodes, every=args.every, n_envs=args.n_envs,
                           seed_start=args.seed_start, steps=args.steps, task=args.task,
-                          policy_options=({"temporal_ensemble_coeff": args.temporal_ensemble}
-                                          if args.temporal_ensemble is not None else None))
+                          policy_options=options)
     for r in rows:
         print(f"step {r['step']:>7} ({r['train_hours']:.2f} h): {r['successes']}/"
               f"{r['episodes']} = {100 * r['success']:.1f}% (95% CI {100 * r['ci95'][0]:.1f}-"
               f"{100 * r['ci95'][1]:.1f})")
-    name = "eval_curve.png" if args.task == "pick_place" else f"eval_curve_{args.task}.png"
-    print(f"plot: {plot_curve(rows, run / name, title=f'{args.task}: closed-loop success')}")
+    # One plot per curve: a variant (e.g. temporal ensembling) never overwrites the
+    # checkpoints' own curve.
+    task, variant = Path(args.task).stem, curve_variant(options)
+    name = "eval_curve" + ("" if task == "pick_place" else f"_{task}") + \
+        (f"-{variant}" if variant else "") + ".png"
+    title = f"{task}: closed-loop success" + (f" ({variant})" if variant else "")
+    print(f"plot: {plot_curve(rows, run / name, title=title)}")
     return 0
 
 
