@@ -62,8 +62,10 @@ def main(argv: list[str] | None = None) -> int:
             name = f"{run.name}_{task}" + (f"_{args.variant}" if args.variant else "")
             png = plot_curve(curve, args.plots / f"{name}.png",
                              hours_key=hours[0], hours_label=hours[1],
-                             title=f"run {run.name}, task {task}: {counts} seeds from "
-                                   f"{curve[-1]['seed_start']} per checkpoint")
+                             title=f"run {run.name}, task {task}"
+                                   + (f" ({args.variant})" if args.variant else "")
+                                   + f": {counts} seeds from {curve[-1]['seed_start']} "
+                                   "per checkpoint")
             for r in curve:
                 lo, hi = (100 * x for x in r["ci95"])
                 modes = ", ".join(f"{k} {v}" for k, v in sorted(
