@@ -72,7 +72,9 @@ def test_shipped_policy_loads_fp32_through_lerobot(folder: Path) -> None:
     dtypes = {p.dtype for p in policy.parameters()}
     assert dtypes == {torch.float32}
     n_bytes = sum(f.stat().st_size for f in folder.iterdir() if f.is_file())
-    assert n_bytes <= 30 * 2**20, f"shipped checkpoint is {n_bytes / 2**20:.1f} MiB"
+    # the repo's limit is 30 MB (decimal; an fp16 ACT of the `act` preset is 31.1 MB, which
+    # is 29.7 MiB, so the unit matters)
+    assert n_bytes <= 30e6, f"shipped checkpoint is {n_bytes / 1e6:.2f} MB; the limit is 30 MB"
     card = (folder / "README.md").read_text()
     for task in (t for t, f in SHIPPED if f == folder):
         agg = _recorded(task, folder)["aggregated"]

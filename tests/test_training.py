@@ -444,8 +444,19 @@ def test_act_trains_from_its_preset_and_evaluates(dataset: Path, tmp_path: Path)
     assert read_train_info(r.pretrained_dir)["policy_type"] == "act"
     loaded_cfg, _, _, _ = load_checkpoint(r.pretrained_dir, expect_type="act")
     assert (loaded_cfg.chunk_size, loaded_cfg.n_action_steps) == (8, 4)
-    card = (export_policy(r.pretrained_dir, tmp_path / "shipped") / "README.md").read_text()
+    shipped = export_policy(r.pretrained_dir, tmp_path / "shipped")
+    card = (shipped / "README.md").read_text()
     assert card.startswith("# shipped: ACT for") and "lerobot `ACTPolicy`" in card
+    # the shipped copy leaves out the VAE encoder and acts exactly as the trained model does
+    _, trained, _, _ = load_checkpoint(r.pretrained_dir, expect_type="act")
+    slim_cfg, slim, _, _ = load_checkpoint(shipped, expect_type="act")
+    assert trained.config.use_vae and not slim_cfg.use_vae
+    full = trained.state_dict()
+    vae = [k for k in full if k.startswith("model.vae_encoder")]
+    assert vae and "ACT's VAE encoder" in card
+    slim.load_state_dict({k: v for k, v in full.items() if k not in vae}, strict=True)
+    with torch.no_grad():
+        assert torch.equal(trained.predict_action_chunk(ours), slim.predict_action_chunk(ours))
     result = evaluate(LeRobotPolicy(r.pretrained_dir, log=lambda _: None),
                       task=short_task(tmp_path, max_steps=8), episodes=1, n_envs=1, videos=0,
                       image_size=SMALL, out_dir=tmp_path / "eval", progress=False, report=False,

@@ -20,13 +20,34 @@ from so101_sim.train.checkpoint import TRAIN_INFO, checkpoint_name
 from so101_sim.utils.locks import folder_lock
 from so101_sim.utils.trust import check_processor_files
 
+#: Weights of ACT's VAE encoder: it only encodes the demo's action chunk into the latent during
+#: training; at inference lerobot's ACT feeds a zero latent, so these never touch an action.
+ACT_TRAINING_ONLY = "model.vae_encoder"
 
-def _fp16_copy(src: Path, dst: Path) -> None:
+
+def _fp16_copy(src: Path, dst: Path, drop: str | None = None) -> int:
+    """Store `src` in fp16 at `dst`, leaving out tensors whose name starts with `drop`; returns
+    the number of parameters left out."""
     from safetensors.torch import load_file, save_file
 
     state = load_file(src)
-    save_file({k: v.half() if v.is_floating_point() else v for k, v in state.items()}, dst,
+    gone = [k for k in state if drop and k.startswith(drop)]
+    save_file({k: v.half() if v.is_floating_point() else v for k, v in state.items()
+               if k not in gone}, dst,
               metadata={"format": "pt", "so101_sim": "stored fp16; loads into fp32"})
+    return sum(state[k].numel() for k in gone)
+
+
+def _drop_act_vae(folder: Path) -> bool:
+    """Turn an ACT checkpoint's config to `use_vae: false` (the shipped copy keeps no VAE
+    encoder); True when it was an ACT trained with one."""
+    path = folder / "config.json"
+    cfg = json.loads(path.read_text())
+    if cfg.get("type") != "act" or not cfg.get("use_vae"):
+        return False
+    cfg["use_vae"] = False
+    path.write_text(json.dumps(cfg, indent=4) + "\n")
+    return True
 
 
 def loss_curve(log: Path, points: int = 8) -> list[dict]:
@@ -130,6 +151,9 @@ def model_card(train_info: dict, evals: dict | list[dict] | None, curve: list[di
            f"{t['init_from']['model_sha256']}), fine-tuned on the data above |"]
           if t.get("init_from") else []),
         f"| precision | {_precision(t)} |",
+        *([f"| shipped without | ACT's VAE encoder ({t['dropped_training_only'] / 1e6:.2f}M "
+           "parameters; it only encodes demo actions in training, inference feeds a zero "
+           "latent), so `use_vae` is false here |"] if t.get("dropped_training_only") else []),
         f"| trainer wall time | {t['train_wall_s'] / 3600:.2f} h (while the trainer ran, "
         "including time paused or sharing the CPU) |",
         f"| hardware | {hardware} |",
@@ -215,7 +239,11 @@ def _export(checkpoint: Path, dest: Path, info_path: Path, evals: list[tuple[Pat
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         shutil.copytree(checkpoint, tmp, ignore=shutil.ignore_patterns("model.safetensors"))
-        _fp16_copy(checkpoint / "model.safetensors", tmp / "model.safetensors")
+        act_vae = _drop_act_vae(tmp)
+        dropped = _fp16_copy(checkpoint / "model.safetensors", tmp / "model.safetensors",
+                             drop=ACT_TRAINING_ONLY if act_vae else None)
+        if dropped:
+            info = {**info, "dropped_training_only": dropped}
         for path, e in evals:
             shutil.copy(path, tmp / (INFO if len(evals) == 1
                                      else f"eval_info_{e['config']['task']}.json"))
