@@ -442,13 +442,12 @@ def test_act_trains_from_its_preset_and_evaluates(dataset: Path, tmp_path: Path)
 
     r = train(dataset, tmp_path / "run", preset_name=str(tiny_act), steps=2, progress=False)
     assert read_train_info(r.pretrained_dir)["policy_type"] == "act"
-    loaded_cfg, _, _, _ = load_checkpoint(r.pretrained_dir, expect_type="act")
+    loaded_cfg, trained, _, _ = load_checkpoint(r.pretrained_dir, expect_type="act")
     assert (loaded_cfg.chunk_size, loaded_cfg.n_action_steps) == (8, 4)
     shipped = export_policy(r.pretrained_dir, tmp_path / "shipped")
     card = (shipped / "README.md").read_text()
     assert card.startswith("# shipped: ACT for") and "lerobot `ACTPolicy`" in card
     # the shipped copy leaves out the VAE encoder and acts exactly as the trained model does
-    _, trained, _, _ = load_checkpoint(r.pretrained_dir, expect_type="act")
     slim_cfg, slim, _, _ = load_checkpoint(shipped, expect_type="act")
     assert trained.config.use_vae and not slim_cfg.use_vae
     full = trained.state_dict()

@@ -31,7 +31,7 @@ def _fp16_copy(src: Path, dst: Path, drop: str | None = None) -> int:
     from safetensors.torch import load_file, save_file
 
     state = load_file(src)
-    gone = [k for k in state if drop and k.startswith(drop)]
+    gone = {k for k in state if drop and k.startswith(drop)}
     save_file({k: v.half() if v.is_floating_point() else v for k, v in state.items()
                if k not in gone}, dst,
               metadata={"format": "pt", "so101_sim": "stored fp16; loads into fp32"})
