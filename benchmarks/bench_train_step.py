@@ -9,6 +9,8 @@ like with like: fp32, bf16 autocast, bf16 + channels_last memory format, bf16 + 
 the batch in 2 parts of one thread each (`so101_sim.train.threads.BatchParts`, what `train`
 does beside a busy neighbour). `--busy` times every variant beside one spinning process too.
 The first `--warmup` steps are excluded. Pause other CPU work while it runs.
+`--device cuda` times the same steps on a GPU (bf16 autocast there is CUDA's; the CPU-only
+variants, compile aside, mean nothing on it), synchronising before each clock read.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ VARIANTS = {
 }
 
 
-def child(preset_name: str, steps: int, warmup: int, opts: dict) -> dict:
+def child(preset_name: str, steps: int, warmup: int, opts: dict, device: str = "cpu") -> dict:
     import torch
 
     sys.path.insert(0, str(ROOT))
@@ -46,7 +48,9 @@ def child(preset_name: str, steps: int, warmup: int, opts: dict) -> dict:
     torch.manual_seed(0)
     preset = load_preset(preset_name)
     cfg = make_config(preset, *policy_features(preset.image_size))
+    cfg.device = device
     policy = get_policy_class(cfg.type)(cfg)  # DiffusionPolicy, or ACTPolicy for --preset act
+    policy.to(device)
     policy.train()
     if opts.get("channels_last"):
         policy = policy.to(memory_format=torch.channels_last)
@@ -61,13 +65,14 @@ def child(preset_name: str, steps: int, warmup: int, opts: dict) -> dict:
     for cam in ("front", "side"):
         img = torch.rand(b, *t, 3, *preset.image_size, generator=gen)
         batch[f"observation.images.{cam}"] = img
+    batch = {k: v.to(device) for k, v in batch.items()}
 
     forward = policy.forward
     if opts.get("compile"):
         forward = torch.compile(policy.forward)
 
     def batch_loss(part: dict) -> torch.Tensor:
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bool(opts.get("bf16"))):
+        with torch.autocast(device, dtype=torch.bfloat16, enabled=bool(opts.get("bf16"))):
             return forward(part)[0]
 
     run_parts = BatchParts()
@@ -78,15 +83,21 @@ def child(preset_name: str, steps: int, warmup: int, opts: dict) -> dict:
         opt.step()
         return loss
 
+    def sync() -> None:
+        if device == "cuda":
+            torch.cuda.synchronize()
+
     t0 = time.perf_counter()
     for _ in range(warmup):
         step()
+    sync()
     warm_s = time.perf_counter() - t0
     neighbour = (subprocess.Popen([sys.executable, "-c", "while True: pass"])
                  if opts.get("busy") else None)
     t0 = time.perf_counter()
     for _ in range(steps):
         step()
+    sync()
     dt = (time.perf_counter() - t0) / steps
     if neighbour is not None:
         neighbour.kill()
@@ -104,20 +115,24 @@ def main() -> None:
     p.add_argument("--variants", default=",".join(VARIANTS))
     p.add_argument("--busy", action="store_true",
                    help="also time each variant beside one spinning process")
+    p.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
+                   help="where the steps run (cuda: the GPU; default cpu)")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.child:
         opts = {**VARIANTS[args.child], "busy": args.busy}
-        print(json.dumps(child(args.preset, args.steps, args.warmup, opts)))
+        print(json.dumps(child(args.preset, args.steps, args.warmup, opts, args.device)))
         return
-    print(f"preset {args.preset}, {args.steps} timed steps after {args.warmup} warm-up, "
+    print(f"preset {args.preset} on {args.device}, {args.steps} timed steps after "
+          f"{args.warmup} warm-up, "
           f"load average {os.getloadavg()[0]:.2f} at start")
     rows = []
     presets = args.preset.split(",")
     for preset, name in ((pr, v) for pr in presets for v in args.variants.split(",")):
         for busy in (False, True) if args.busy else (False,):
             r = subprocess.run([sys.executable, __file__, "--preset", preset, "--steps",
-                                str(args.steps), "--warmup", str(args.warmup), "--child", name]
+                                str(args.steps), "--warmup", str(args.warmup), "--child", name,
+                                "--device", args.device]
                                + (["--busy"] if busy else []), capture_output=True, text=True)
             label = (f"{preset} " if len(presets) > 1 else "") + name + (", busy" if busy else "")
             if r.returncode != 0:

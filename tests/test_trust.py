@@ -127,13 +127,46 @@ def test_device_resolution_on_this_machine() -> None:
         resolve_device("tpu")
     assert resolve_precision("fp32", "cpu") == "fp32"
     assert resolve_precision("auto", "mps") == "fp32"
+    assert resolve_precision("auto", "cuda") == "fp32"  # bf16 was slower on an H200
     assert resolve_precision("auto", "cpu") in ("fp32", "bf16")
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU on this machine: the "
                     "CUDA path of --device is only exercised where one exists")
-def test_cuda_eval_matches_shape() -> None:
-    from so101_sim.harness import load_policy
+def test_cuda_chunks_match_cpu_and_an_eval_runs(tmp_path: Path) -> None:
+    """--device cuda: the weights sit on the GPU, the episode seeds' noise (drawn on the CPU)
+    gives the CPU's chunks up to float rounding, and a closed-loop eval runs end to end."""
+    import sys
 
-    policy = load_policy(str(SHIPPED), device="cuda")
-    assert policy.cfg.device == "cuda"
+    import numpy as np
+
+    from so101_sim.harness import ChunkRequest, evaluate
+    from so101_sim.harness.policies.lerobot import LeRobotPolicy
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from tiny_policy import make_tiny_diffusion_checkpoint, short_task
+
+    ckpt = make_tiny_diffusion_checkpoint(tmp_path / "tiny", input_size=(48, 64),
+                                          dataset_image_size=(96, 128))
+    rng = np.random.default_rng(0)
+    reqs = [ChunkRequest(i, 100000 + i, [{
+        "agent_pos": rng.uniform(-50, 50, 6).astype(np.float32),
+        "pixels": {c: rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+                   for c in ("front", "side")}} for _ in range(2)]) for i in range(3)]
+    chunks, policies = {}, {}
+    for device in ("cpu", "cuda"):
+        policy = policies[device] = LeRobotPolicy(ckpt, device=device, log=lambda _: None)
+        assert policy.cfg.device == device
+        assert {p.device.type for p in policy.policy.parameters()} == {device}
+        for r in reqs:
+            policy.start_episode(r.slot, r.seed)
+        chunks[device] = policy.predict_chunks(reqs)
+    assert chunks["cuda"].dtype == np.float32 and chunks["cuda"].shape == chunks["cpu"].shape
+    # TF32 convolutions on the GPU round differently from the CPU's fp32: close, not equal
+    diff = float(np.abs(chunks["cuda"] - chunks["cpu"]).max())
+    print(f"max |cuda - cpu| over the chunks: {diff:.2e} (scale {np.abs(chunks['cpu']).max():.1f})")
+    assert diff < 0.01 * float(np.abs(chunks["cpu"]).max())
+    result = evaluate(policies["cuda"], task=str(short_task(tmp_path, max_steps=16)),
+                      episodes=2, n_envs=2, videos=0, report=False, out_dir=tmp_path / "eval",
+                      progress=False, log=lambda _: None)
+    assert [e["steps"] for e in result["per_episode"]] == [16, 16]

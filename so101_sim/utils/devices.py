@@ -1,9 +1,12 @@
 """Which torch device and precision `train` and `eval` run on: `--device auto|cpu|cuda|mps`.
 
 `auto` takes CUDA, then Apple's MPS, then the CPU. Precision `auto` takes bfloat16 autocast
-where the device has fast bf16 (CUDA with bf16 support; CPUs with AMX or AVX512-BF16, where it
-was 1.4x faster per training step here) and fp32 elsewhere. Weights, optimiser state and EMA
-stay fp32 either way. torch is imported lazily: `import so101_sim` stays light.
+where it was measured faster: CPUs with AMX or AVX512-BF16 (1.4x per training step here). On
+CUDA it takes fp32: at the presets' batch sizes an H200 step is launch-bound and autocast's
+casts made it slower (seed 0.029 s fp32 against 0.036 s bf16, cpu 0.032 against 0.041, act
+0.035 against 0.034; `benchmarks/gpu_check.sh`); pass bf16 for larger batches. Weights,
+optimiser state and EMA stay fp32 either way. torch is imported lazily: `import so101_sim`
+stays light.
 """
 
 from __future__ import annotations
@@ -47,15 +50,13 @@ def cpu_has_fast_bf16() -> bool:
 
 
 def resolve_precision(precision: str, device: str) -> str:
-    """`fp32` or `bf16` for a concrete `device`; `auto` picks bf16 where it is fast."""
-    import torch
-
+    """`fp32` or `bf16` for a concrete `device`; `auto` picks bf16 where it is faster."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision={precision!r} is invalid; expected one of {PRECISIONS}")
     if precision != "auto":
         return precision
     if device == "cuda":
-        return "bf16" if torch.cuda.is_bf16_supported() else "fp32"
+        return "fp32"  # measured faster on an H200 at the presets' batch sizes (see above)
     if device == "cpu":
         return "bf16" if cpu_has_fast_bf16() else "fp32"
     return "fp32"  # mps: bf16 autocast depends on the macOS version; stay safe
