@@ -4,9 +4,9 @@
 where it was measured faster: CPUs with AMX or AVX512-BF16 (1.4x per training step here). On
 CUDA it takes fp32: at the presets' batch sizes an H200 step is launch-bound and autocast's
 casts made it slower (seed 0.029 s fp32 against 0.036 s bf16, cpu 0.032 against 0.041, act
-0.035 against 0.034; `benchmarks/gpu_check.sh`); pass bf16 for larger batches. Weights,
-optimiser state and EMA stay fp32 either way. torch is imported lazily: `import so101_sim`
-stays light.
+0.035 against 0.034; `benchmarks/gpu_check.sh`); larger batches were not measured, and
+`--precision bf16` asks for it there. Weights, optimiser state and EMA stay fp32 either way.
+torch is imported lazily: `import so101_sim` stays light.
 """
 
 from __future__ import annotations
