@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# A look at one checkpoint of the ACT six-task run on the first N evaluation seeds per task,
+# temporal ensembling on (README.md here, "ACT on the six tasks"):
+#   bash benchmarks/baselines/quick_look.sh RUNS_DIR STEP [N]
+# Pause training first (kill -STOP), resume it after (kill -CONT). Each task's per-seed result
+# is copied to benchmarks/baselines/<task>/act_suite_te_step_<STEP>.json, and paired with the
+# shipped policy/suite_diffusion card's outcomes on the same seeds (pair_with_card.py).
+set -euo pipefail
+here=$(cd "$(dirname "$0")" && pwd)
+repo=$(cd "$here/../.." && pwd)
+sim=${SIM:-$repo/.venv/bin/so101-sim}
+runs=${1:?usage: quick_look.sh RUNS_DIR STEP [N]}
+step=${2:?usage: quick_look.sh RUNS_DIR STEP [N]}
+n=${3:-50}
+run=$runs/runs/act_suite
+name=$(printf 'act_suite_te_step_%07d.json' "$step")
+for t in pick_place lift stack tidy pick_place_anywhere pick_place_dr; do
+  "$sim" curve "$run" --task "$t" --steps "$step" --episodes "$n" --n-envs 32 \
+    --temporal-ensemble 0.01
+  src=$run/eval_curve/$t-temporal_ensemble_coeff=0.01/$(printf "step_%07d" "$step")
+  cp "$src/eval_info.json" "$here/$t/$name"
+done
+"$repo/.venv/bin/python" "$here/pair_with_card.py" "$name"
