@@ -34,7 +34,8 @@ VARIANTS = {
 }
 
 
-def child(preset_name: str, steps: int, warmup: int, opts: dict, device: str = "cpu") -> dict:
+def child(preset_name: str, steps: int, warmup: int, opts: dict, device: str = "cpu",
+          batch_size: int | None = None) -> dict:
     import torch
 
     sys.path.insert(0, str(ROOT))
@@ -55,7 +56,7 @@ def child(preset_name: str, steps: int, warmup: int, opts: dict, device: str = "
     if opts.get("channels_last"):
         policy = policy.to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(policy.parameters(), lr=1e-4)
-    b, h = preset.train.batch_size, len(cfg.action_delta_indices)
+    b, h = batch_size or preset.train.batch_size, len(cfg.action_delta_indices)
     # the shapes the trainer's batches have: ACT's observations carry no time axis
     t = () if cfg.observation_delta_indices is None else (len(cfg.observation_delta_indices),)
     gen = torch.Generator().manual_seed(0)
@@ -117,13 +118,17 @@ def main() -> None:
                    help="also time each variant beside one spinning process")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
                    help="where the steps run (cuda: the GPU; default cpu)")
+    p.add_argument("--batch-size", type=int, default=None,
+                   help="samples per step (default: the preset's)")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.child:
         opts = {**VARIANTS[args.child], "busy": args.busy}
-        print(json.dumps(child(args.preset, args.steps, args.warmup, opts, args.device)))
+        print(json.dumps(child(args.preset, args.steps, args.warmup, opts, args.device,
+                                      args.batch_size)))
         return
-    print(f"preset {args.preset} on {args.device}, {args.steps} timed steps after "
+    print(f"preset {args.preset} on {args.device}, batch {args.batch_size or 'preset'}, "
+          f"{args.steps} timed steps after "
           f"{args.warmup} warm-up, "
           f"load average {os.getloadavg()[0]:.2f} at start")
     rows = []
@@ -133,6 +138,7 @@ def main() -> None:
             r = subprocess.run([sys.executable, __file__, "--preset", preset, "--steps",
                                 str(args.steps), "--warmup", str(args.warmup), "--child", name,
                                 "--device", args.device]
+                               + (["--batch-size", str(args.batch_size)] if args.batch_size else [])
                                + (["--busy"] if busy else []), capture_output=True, text=True)
             label = (f"{preset} " if len(presets) > 1 else "") + name + (", busy" if busy else "")
             if r.returncode != 0:
