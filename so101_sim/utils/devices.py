@@ -4,8 +4,8 @@
 where it was measured faster: CPUs with AMX or AVX512-BF16 (1.4x per training step here). On
 CUDA it takes fp32: at the presets' batch sizes an H200 step is launch-bound and autocast's
 casts made it slower (seed 0.029 s fp32 against 0.036 s bf16, cpu 0.032 against 0.041, act
-0.035 against 0.034; `benchmarks/gpu_check.sh`); larger batches were not measured, and
-`--precision bf16` asks for it there. Weights, optimiser state and EMA stay fp32 either way.
+0.035 against 0.034; at batch 256 equal or slower too; the real trainer 1.2x faster in fp32;
+`benchmarks/README.md`, gpu_check.sh). Weights, optimiser state and EMA stay fp32 either way.
 torch is imported lazily: `import so101_sim` stays light.
 """
 
