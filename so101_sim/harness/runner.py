@@ -134,6 +134,10 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
     # More episodes on --resume extend the run (same seeds first); not with a rollouts
     # dataset, whose seed list is fixed when it is created.
     grow = ("episodes",) if save_rollouts is None else ()
+    if backend == "ray":  # SIGTERM exits 15 and cleans up from the run folder's first file on
+        from so101_sim.workers.ray_connect import exit_on_sigterm
+
+        exit_on_sigterm()
     done = {s: r for s, r in run.prepare(identity, resume, may_grow=grow).items()
             if seed_start <= s < seed_start + episodes}
     if sink is not None:

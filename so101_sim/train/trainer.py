@@ -57,9 +57,8 @@ from so101_sim.utils.locks import hold_folder, lock_scope
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-#: Training precision: fp32, or bf16 autocast (CPU with AMX/AVX512-BF16: 1.45x faster per
-#: cpu-preset step here; slower on an H200 at these batch sizes); weights, optimiser and EMA
-#: stay fp32. "auto": see devices.py.
+#: Training precision: fp32, or bf16 autocast (AMX/AVX512-BF16 CPUs: 1.45x faster per step;
+#: slower on an H200); weights, optimiser and EMA stay fp32. "auto": see devices.py.
 PRECISIONS = ("auto", "fp32", "bf16")
 
 

@@ -99,9 +99,7 @@ def bounded_init(init: Callable[[], Any], address: str, timeout_s: float) -> Non
     """Join a cluster: run `init` (``ray.init``) in a helper thread and wait for it here in
     short slices, at most `timeout_s`; Ctrl-C and SIGTERM end the wait at once (SIGTERM
     exits, as Ray's own handler does)."""
-    main = threading.current_thread() is threading.main_thread()
-    if main:
-        signal.signal(signal.SIGTERM, _exit_on_signal)
+    exit_on_sigterm()
     box: dict[str, BaseException] = {}
 
     def run() -> None:
@@ -163,6 +161,15 @@ def init_holding_signals(init: Callable[[], Any]) -> int | None:
         signal.signal(signal.SIGINT, old_int)
         signal.signal(signal.SIGTERM, _exit_on_signal)  # what Ray's init would have set
     return pending[0] if pending else None
+
+
+def exit_on_sigterm() -> None:
+    """From here on SIGTERM ends this process as Ray's own handler does: exit 15, with
+    ``finally`` blocks run (the run folder is cleaned up). Only the main thread can set it.
+    Called before ``import ray`` too, which takes seconds on a busy machine: a SIGTERM there
+    met Python's default action and the process died at once (exit -15, the folder left)."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _exit_on_signal)
 
 
 def _exit_on_signal(signum: int, frame: Any) -> None:

@@ -31,6 +31,7 @@ from so101_sim.workers.ray_connect import (
     RayAddressError,
     bounded_init,
     connect_timeout,
+    exit_on_sigterm,
     init_holding_signals,
     probe_address,
 )
@@ -40,7 +41,9 @@ FORWARDED_ENV = ("MUJOCO_GL", "PYOPENGL_PLATFORM", "HF_HUB_OFFLINE", "OMP_WAIT_P
 
 
 def import_ray() -> Any:
-    """The ``ray`` module, or an error that says how to install it."""
+    """The ``ray`` module, or an error that says how to install it. SIGTERM exits cleanly
+    from here on: the import alone takes seconds on a busy machine."""
+    exit_on_sigterm()
     try:
         import ray
     except ImportError:
