@@ -125,11 +125,10 @@ def main() -> None:
     if args.child:
         opts = {**VARIANTS[args.child], "busy": args.busy}
         print(json.dumps(child(args.preset, args.steps, args.warmup, opts, args.device,
-                                      args.batch_size)))
+                               args.batch_size)))
         return
     print(f"preset {args.preset} on {args.device}, batch {args.batch_size or 'preset'}, "
-          f"{args.steps} timed steps after "
-          f"{args.warmup} warm-up, "
+          f"{args.steps} timed steps after {args.warmup} warm-up, "
           f"load average {os.getloadavg()[0]:.2f} at start")
     rows = []
     presets = args.preset.split(",")
