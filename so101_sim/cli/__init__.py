@@ -7,7 +7,7 @@ import sys
 
 from so101_sim.cli.parser import build_parser, parse_camera_map_arg, parse_image_size
 from so101_sim.utils.disk import again_hint, free_space, is_disk_full, set_command
-from so101_sim.workers.ray_connect import CONNECT_TIMEOUT_ENV
+from so101_sim.workers.ray_connect import CONNECT_TIMEOUT_ENV, signal_exit_code
 
 __all__ = ["build_parser", "main", "parse_camera_map_arg", "parse_image_size"]
 
@@ -18,7 +18,8 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "ray_connect_timeout", None) is not None:  # read by workers.ray_connect
         os.environ[CONNECT_TIMEOUT_ENV] = str(args.ray_connect_timeout)
     try:
-        return args.func(args)
+        with signal_exit_code():  # SIGTERM exits 15 wherever in Ray it lands
+            return args.func(args)
     except PermissionError as exc:
         print(f"so101-sim {args.command}: error: cannot write or read {exc.filename}: "
               "permission denied; choose a folder you own (e.g. under your home) for --out",

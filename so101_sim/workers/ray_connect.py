@@ -19,7 +19,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -172,5 +172,22 @@ def exit_on_sigterm() -> None:
         signal.signal(signal.SIGTERM, _exit_on_signal)
 
 
+_RECEIVED: list[int] = []  # the signals `_exit_on_signal` turned into SystemExit
+
+
 def _exit_on_signal(signum: int, frame: Any) -> None:
+    _RECEIVED.append(signum)
     sys.exit(signum)
+
+
+@contextlib.contextmanager
+def signal_exit_code() -> Iterator[None]:
+    """Keep exit code 15 for a SIGTERM that came while Ray waited in C++ (``ray.wait``,
+    ``ray.get``): Ray's signal check there catches the handler's ``SystemExit(15)`` and raises
+    ``SystemExit(1)`` in its place, so the exit code depended on where the signal landed."""
+    try:
+        yield
+    except SystemExit as exc:
+        if _RECEIVED and exc.code != _RECEIVED[0]:
+            raise SystemExit(_RECEIVED[0]) from None
+        raise
