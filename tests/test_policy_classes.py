@@ -60,6 +60,40 @@ def test_temporal_ensembling_matches_lerobots_own_select_action(tmp_path):
         np.testing.assert_allclose(got[0, 0], want[0], rtol=1e-5, atol=1e-4)
 
 
+
+def test_two_forwards_at_once_each_get_their_own_actions(tmp_path):
+    """harness.forwards runs two predict_chunks at once on threads. lerobot's processor steps
+    keep the transition in flight in an attribute, so unguarded they swapped observations
+    between the threads (51 of 2000 forwards, here); each thread must get exactly the actions
+    of its own observation, as one forward at a time gives."""
+    import sys
+    from concurrent.futures import ThreadPoolExecutor
+
+    ckpt = make_tiny_act_checkpoint(tmp_path / "act", SIZE)
+    policy = LeRobotPolicy(ckpt, batch_size=1, log=lambda _: None)
+    rng = np.random.default_rng(2)
+    frames = [_obs(rng) for _ in range(4)]
+    for slot in range(4):
+        policy.start_episode(slot, 100_000 + slot)
+
+    def forward(slot: int) -> np.ndarray:
+        return policy.predict_chunks([ChunkRequest(slot, 100_000 + slot, [frames[slot]])])
+
+    alone = [forward(slot) for slot in range(4)]
+    assert not np.array_equal(alone[0], alone[1])  # a swap would show
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(1e-5)  # switch threads often, as a busy machine does
+    try:
+        with ThreadPoolExecutor(2, initializer=torch.set_num_threads,
+                                initargs=(torch.get_num_threads(),)) as pool:
+            for i in range(150):
+                pair = (2 * i) % 4, (2 * i + 1) % 4
+                futures = [pool.submit(forward, slot) for slot in pair]
+                for slot, fut in zip(pair, futures, strict=True):
+                    np.testing.assert_array_equal(fut.result(), alone[slot])
+    finally:
+        sys.setswitchinterval(before)
+
 def _actions(policy: LeRobotPolicy, steps: int) -> np.ndarray:
     """Each forward's executed actions for two envs fed the same random frames."""
     policy.start_episode(0, 100_000)

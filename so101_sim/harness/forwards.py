@@ -3,11 +3,11 @@
 With cheap renders the driver's forwards are the bottleneck: one forward at a time keeps one
 core on the policy while the env workers leave the other half idle. A policy that says its
 ``predict_chunks`` may run concurrently (``concurrent_forwards = True``: the lerobot adapter,
-whose per-episode state is per slot) gets two forwards in flight on a thread pool, each with
-the torch thread count the harness set, so every row still sees the same kernels, batch size
-and threads as one forward at a time: the actions are the same bit for bit. A finished
-forward writes a byte into a pipe the worker pool waits on, so the loop wakes for it as it
-does for a worker's reply.
+whose per-episode state is per slot and whose processor pipelines take turns) gets two
+forwards in flight on a thread pool, each with the torch thread count the harness set, so
+every row still sees the same kernels, batch size and threads as one forward at a time: the
+actions are the same bit for bit. A finished forward writes a byte into a pipe the worker
+pool waits on, so the loop wakes for it as it does for a worker's reply.
 """
 
 from __future__ import annotations
