@@ -94,6 +94,29 @@ def test_two_forwards_at_once_each_get_their_own_actions(tmp_path):
     finally:
         sys.setswitchinterval(before)
 
+
+@pytest.mark.parametrize("later_steps_see_the_row", [False, True])
+def test_ensembling_checks_the_whole_chunk_for_batch_independence(tmp_path, monkeypatch,
+                                                                   later_steps_see_the_row):
+    """Ensembling averages every action of each chunk, so the load-time batching check must
+    compare whole chunks: rows that differ only after the first action still force one
+    forward per env."""
+    from lerobot.policies.act.modeling_act import ACTPolicy
+
+    def chunk(self, batch):  # position-independent first action; later ones maybe not
+        rows = batch["observation.state"].shape[0]
+        out = torch.zeros(rows, self.config.chunk_size, 6)
+        if later_steps_see_the_row:
+            out[:, 1:] += torch.arange(rows, dtype=out.dtype)[:, None, None] * 1e-3
+        return out
+
+    monkeypatch.setattr(ACTPolicy, "predict_action_chunk", chunk)
+    ckpt = make_tiny_act_checkpoint(tmp_path / "act", SIZE, temporal_ensemble_coeff=0.01)
+    messages: list[str] = []
+    policy = LeRobotPolicy(ckpt, batch_size=2, log=messages.append)
+    assert policy.batch_size == (1 if later_steps_see_the_row else 2)
+    assert any("depend on its position" in m for m in messages) == later_steps_see_the_row
+
 def _actions(policy: LeRobotPolicy, steps: int) -> np.ndarray:
     """Each forward's executed actions for two envs fed the same random frames."""
     policy.start_episode(0, 100_000)

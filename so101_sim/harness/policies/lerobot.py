@@ -339,10 +339,12 @@ class LeRobotPolicy:
         if self.is_diffusion:
             noise = torch.randn((self.batch_size, self.cfg.horizon,
                                  self.cfg.output_features["action"].shape[0]), generator=gen)
-        first = self._predict(batch, noise)
+        # Ensembling reads every action of the chunk, not only the executed ones.
+        predict = self._predict if self.ensemble is None else self._predict_raw
+        first = predict(batch, noise)
         order = torch.roll(torch.arange(self.batch_size), 1)
-        second = self._predict({k: v if k == "task" else v[order] for k, v in batch.items()},
-                               None if noise is None else noise[order])
+        second = predict({k: v if k == "task" else v[order] for k, v in batch.items()},
+                         None if noise is None else noise[order])
         return torch.equal(first[order], second)
 
 
