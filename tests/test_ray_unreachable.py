@@ -107,6 +107,35 @@ def _ray_processes() -> int:
                for ln in out.splitlines())
 
 
+# Stands in for a signal that lands inside `import ray` (SIGTERM's handler raises SystemExit(15)
+# at whatever line runs, Ctrl-C raises KeyboardInterrupt): raised by the import system when
+# `ray/__init__.py` reaches CUT, after `ray._private.worker` has registered its exit hook.
+_CUT_IMPORT = """
+import sys
+cut, exc = sys.argv[1], {"SystemExit": SystemExit(15), "KeyboardInterrupt": KeyboardInterrupt()}
+class Cut:
+    def find_spec(self, name, path=None, target=None):
+        if name == cut:
+            raise exc[sys.argv[2]]
+sys.meta_path.insert(0, Cut())
+from so101_sim.workers.ray_pool import import_ray
+try:
+    import_ray()
+except KeyboardInterrupt:
+    sys.exit(130)  # as the CLI ends on Ctrl-C
+"""
+
+
+@pytest.mark.parametrize(("cut", "exc"), [("ray.internal", "SystemExit"),
+                                          ("ray.client_builder", "KeyboardInterrupt")])
+def test_a_signal_inside_import_ray_ends_without_a_traceback(cut: str, exc: str) -> None:
+    """CI once printed Ray's exit hook failing on the half-imported package."""
+    r = subprocess.run([sys.executable, "-c", _CUT_IMPORT, cut, exc], env=ENV,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == (15 if exc == "SystemExit" else 130), r.stderr[-2000:]
+    assert "atexit" not in r.stderr and "has no attribute" not in r.stderr, r.stderr[-2000:]
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_signals_end_a_run_that_is_connecting(tmp_path: Path, silent_port: int,
                                               sig: signal.Signals) -> None:

@@ -14,6 +14,7 @@ every wait here is cut into 1 s slices so Ctrl-C and SIGTERM are handled at ever
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import logging
 import os
@@ -49,6 +50,14 @@ def import_ray() -> Any:
     except ImportError:
         raise RuntimeError(f"--backend ray needs Ray, which is not installed here; install it "
                            f"with: {RAY_INSTALL_HINT}; or use --backend local") from None
+    except BaseException:
+        # A signal cut the import short. Ray has started nothing, but its worker module may
+        # have registered ``ray.shutdown`` at exit already; on the half-imported package that
+        # prints a traceback (``module 'ray' has no attribute 'actor'``) as the process ends.
+        worker = sys.modules.get("ray._private.worker")
+        if worker is not None and hasattr(worker, "shutdown"):
+            atexit.unregister(worker.shutdown)
+        raise
     return ray
 
 
