@@ -26,6 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 VARIANTS = {
     "fp32": {},
+    "fp32+channels_last": {"channels_last": True},
     "bf16": {"bf16": True},
     "bf16+channels_last": {"bf16": True, "channels_last": True},
     "bf16+compile": {"bf16": True, "compile": True},
