@@ -5,6 +5,8 @@
 For each task, `<task>/NAME` here against `policy/suite_diffusion/eval_info_<task>.json` on the
 seeds both ran: success with its Wilson interval, the card's successes on those seeds, the
 discordant seeds each way and the exact McNemar p. Prints one markdown table.
+``--against OTHER`` pairs with an earlier look `<task>/OTHER` instead of the card, e.g. two
+runs of the same recipe at the same step.
 """
 
 from __future__ import annotations
@@ -24,9 +26,9 @@ def outcomes(path: Path) -> dict[int, dict]:
     return {e["seed"]: e for e in json.loads(path.read_text())["per_episode"]}
 
 
-def row(task: str, name: str) -> str:
+def row(task: str, name: str, against: str | None = None) -> str:
     look = outcomes(HERE / task / name)
-    card = outcomes(CARD / f"eval_info_{task}.json")
+    card = outcomes(HERE / task / against if against else CARD / f"eval_info_{task}.json")
     seeds = sorted(set(look) & set(card))
     if not seeds:
         raise SystemExit(f"{task}: no seed of {name} is in the card's run; expected seeds from "
@@ -51,12 +53,19 @@ def row(task: str, name: str) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("name", help="file under <task>/ here, e.g. act_suite_te_step_0017500.json")
+    ap.add_argument("--against", metavar="OTHER", default=None,
+                    help="pair with the look <task>/OTHER here instead of the suite_diffusion card")
     args = ap.parse_args()
-    print("| task | look (95% CI) | failures | card, same seeds | only look / only card | p |")
+    tasks = [t for t in TASKS if (HERE / t / args.name).exists()]
+    for task in tasks:
+        if args.against and not (HERE / task / args.against).exists():
+            raise SystemExit(f"{task}: --against {args.against}: no file {task}/{args.against} "
+                             f"here; expected a look's eval_info.json (ls {HERE / task})")
+    ref = args.against or "card"
+    print(f"| task | look (95% CI) | failures | {ref}, same seeds | only look / only {ref} | p |")
     print("|---|---|---|---|---|---|")
-    for task in TASKS:
-        if (HERE / task / args.name).exists():
-            print(row(task, args.name))
+    for task in tasks:
+        print(row(task, args.name, args.against))
 
 
 if __name__ == "__main__":
