@@ -31,7 +31,8 @@ def row(task: str, name: str, against: str | None = None) -> str:
     card = outcomes(HERE / task / against if against else CARD / f"eval_info_{task}.json")
     seeds = sorted(set(look) & set(card))
     if not seeds:
-        raise SystemExit(f"{task}: no seed of {name} is in the card's run; expected seeds from "
+        raise SystemExit(f"{task}: no seed of {name} is in {against or 'the card'}'s run; "
+                         "expected seeds from "
                          "100000 (evaluation seeds)")
     ok = sum(look[s]["success"] for s in seeds)
     ref = sum(card[s]["success"] for s in seeds)

@@ -11,19 +11,20 @@ set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 repo=$(cd "$here/../.." && pwd)
 sim=${SIM:-$repo/.venv/bin/so101-sim}
-runs=${1:?usage: quick_look.sh RUNS_DIR STEP [N]}
-step=${2:?usage: quick_look.sh RUNS_DIR STEP [N]}
+runs=${1:?usage: quick_look.sh RUNS_DIR STEP [N] [PREFIX]}
+step=${2:?usage: quick_look.sh RUNS_DIR STEP [N] [PREFIX]}
 n=${3:-50}
 prefix=${4:-act_suite3}
+tasks="pick_place lift stack tidy pick_place_anywhere pick_place_dr"
 run=$runs/runs/act_suite
 name=$(printf '%s_te_step_%07d.json' "$prefix" "$step")
-for t in pick_place lift stack tidy pick_place_anywhere pick_place_dr; do
+for t in $tasks; do
   if [ -e "$here/$t/$name" ]; then
     echo "quick_look.sh: $here/$t/$name exists; pass another PREFIX (4th argument) or move it" >&2
     exit 2
   fi
 done
-for t in pick_place lift stack tidy pick_place_anywhere pick_place_dr; do
+for t in $tasks; do
   "$sim" curve "$run" --task "$t" --steps "$step" --episodes "$n" --n-envs 32 \
     --temporal-ensemble 0.01
   src=$run/eval_curve/$t-temporal_ensemble_coeff=0.01/$(printf "step_%07d" "$step")
