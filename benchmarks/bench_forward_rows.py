@@ -1,0 +1,111 @@
+"""What one policy forward costs per row at 8, 16, 32 rows, and whether the rows keep their bits.
+
+    .venv/bin/python benchmarks/bench_forward_rows.py [CHECKPOINT] [--rows 8,16,32] [--repeats 10]
+
+The harness pads every forward to the policy's ``batch_size`` rows (8 by default) because a
+row's actions change bitwise with the batch size on CPU. This prints, per batch size, the
+median time of a whole ``predict_chunks`` call (preprocessing, encoder, DDIM sampling,
+postprocessing) on one torch thread, as each of the harness's forward threads runs it, over
+rounds through the sizes in turn; the encoder's share; the cost per row; and whether the first
+8 rows' actions equal those of an 8-row forward bit for bit. It answers how much a larger
+default batch would save, and what it would cost: every earlier run's actions. Run it with
+nothing else busy (pause training).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from so101_sim.harness.policies.lerobot import LeRobotPolicy
+from so101_sim.harness.policies.protocol import ChunkRequest
+
+ROOT = Path(__file__).resolve().parents[1]
+BASE = 8  # the harness's default rows per forward
+
+
+def requests(policy: LeRobotPolicy, n: int, seed: int = 0) -> list[ChunkRequest]:
+    """`n` chunk requests with random frames and joint positions, as the workers send them."""
+    rng = np.random.default_rng(seed)
+    h, w = policy.info.image_size
+    out = []
+    for slot in range(n):
+        history = [{"agent_pos": rng.uniform(-1, 1, 6).astype(np.float32),
+                    "pixels": {c: rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+                               for c in policy.info.cameras}}
+                   for _ in range(policy.info.n_obs_steps)]
+        out.append(ChunkRequest(slot, 1000 + slot, history))
+    return out
+
+
+def chunks(policy: LeRobotPolicy, reqs: list[ChunkRequest]) -> np.ndarray:
+    """One forward with every slot's noise drawn afresh from its episode seed."""
+    for r in reqs:
+        policy.start_episode(r.slot, r.seed)
+    return policy.predict_chunks(reqs)
+
+
+def median_s(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("checkpoint", nargs="?", default=str(ROOT / "policy/pick_place_diffusion"))
+    parser.add_argument("--rows", default="8,16,32", help="batch sizes, comma-separated")
+    parser.add_argument("--repeats", type=int, default=10, help="rounds of one forward per size")
+    args = parser.parse_args()
+    sizes = [int(x) for x in args.rows.split(",")]
+    if any(n < BASE for n in sizes):
+        parser.error(f"--rows {args.rows}: every size must be >= {BASE} (the bit check compares "
+                     f"the first {BASE} rows with an {BASE}-row forward)")
+    torch.set_num_threads(1)  # as each of the harness's two forward threads runs
+    quiet = lambda _: None  # noqa: E731
+    base = LeRobotPolicy(args.checkpoint, batch_size=BASE, log=quiet)
+    ref = chunks(base, requests(base, BASE))
+    policies = {n: base if n == BASE else LeRobotPolicy(args.checkpoint, batch_size=n, log=quiet)
+                for n in sizes}
+    reqs = {n: requests(policies[n], n) for n in sizes}
+    imgs = {}
+    for n, policy in policies.items():
+        chunks(policy, reqs[n])  # warm-up
+        h, w = getattr(policy.cfg, "crop_shape", None) or policy.info.image_size
+        n_img = n * policy.info.n_obs_steps * len(policy.info.cameras)
+        imgs[n] = torch.rand((n_img, 3, h, w), generator=torch.Generator().manual_seed(0))
+    # Rounds over the sizes in turn, so drift in this machine's speed hits every size alike.
+    fwd: dict[int, list[float]] = {n: [] for n in sizes}
+    enc: dict[int, list[float]] = {n: [] for n in sizes}
+    for _ in range(args.repeats):
+        for n, policy in policies.items():
+            fwd[n].append(median_s(lambda p=policy, r=reqs[n]: chunks(p, r), 1))
+            inner = getattr(policy.policy, "diffusion", None)  # diffusion: the image encoder
+            if inner is not None:
+                with torch.no_grad():
+                    enc[n].append(median_s(lambda i=imgs[n], m=inner: m.rgb_encoder(i), 1))
+    print(f"{args.checkpoint}: one torch thread, median of {args.repeats} rounds over the "
+          "sizes in turn\n")
+    print("| rows | forward ms | encoder ms | rest ms | ms per row | per row vs 8 | "
+          "first 8 rows same bits as an 8-row forward |")
+    print("|---|---|---|---|---|---|---|")
+    first = None
+    for n, policy in policies.items():
+        f = statistics.median(fwd[n])
+        e = statistics.median(enc[n]) if enc[n] else float("nan")
+        same = bool(np.array_equal(chunks(policy, reqs[n])[:BASE], ref))
+        per_row = f / n
+        first = first or per_row
+        print(f"| {n} | {f * 1e3:.1f} | {e * 1e3:.1f} | {(f - e) * 1e3:.1f} | "
+              f"{per_row * 1e3:.2f} | {per_row / first:.2f}x | {'yes' if same else 'no'} |")
+
+if __name__ == "__main__":
+    main()
