@@ -50,13 +50,11 @@ def chunks(policy: LeRobotPolicy, reqs: list[ChunkRequest]) -> np.ndarray:
     return policy.predict_chunks(reqs)
 
 
-def median_s(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+def seconds(fn) -> float:
+    """Wall time of one call of `fn`."""
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
 
 
 def main() -> None:
@@ -87,14 +85,14 @@ def main() -> None:
     enc: dict[int, list[float]] = {n: [] for n in sizes}
     for _ in range(args.repeats):
         for n, policy in policies.items():
-            fwd[n].append(median_s(lambda p=policy, r=reqs[n]: chunks(p, r), 1))
+            fwd[n].append(seconds(lambda p=policy, r=reqs[n]: chunks(p, r)))
             inner = getattr(policy.policy, "diffusion", None)  # diffusion: the image encoder
             if inner is not None:
                 with torch.no_grad():
-                    enc[n].append(median_s(lambda i=imgs[n], m=inner: m.rgb_encoder(i), 1))
+                    enc[n].append(seconds(lambda i=imgs[n], m=inner: m.rgb_encoder(i)))
     print(f"{args.checkpoint}: one torch thread, median of {args.repeats} rounds over the "
           "sizes in turn\n")
-    print("| rows | forward ms | encoder ms | rest ms | ms per row | per row vs 8 | "
+    print("| rows | forward ms | encoder ms | rest ms | ms per row | per row vs first | "
           "first 8 rows same bits as an 8-row forward |")
     print("|---|---|---|---|---|---|---|")
     first = None
