@@ -1,7 +1,9 @@
-"""Success by where the cube starts: per-seed evaluations binned by the cube's bearing.
+"""Success by where the cube starts (and, with --factors, by each randomized factor).
 
     .venv/bin/python benchmarks/baselines/by_place.py \
         benchmarks/baselines/lift/suite_step_00{60,70}000.json
+    .venv/bin/python benchmarks/baselines/by_place.py --factors \
+        benchmarks/baselines/pick_place_dr/suite_step_0060000.json
 
 Each argument is an ``eval_info.json`` (or a folder holding one) with per-episode seeds; all
 must be one task on the same seeds. Each seed is reset once (state only, no rendering) to read
@@ -10,6 +12,13 @@ shoulder_pan axis (0 deg = straight ahead, negative = the robot's right, the sid
 side). The table gives success per bin for each file (Wilson 95% interval for the last) and the
 last file's failure modes. ``--demos DATASET`` adds how many of a recorded dataset's episodes
 start in each bin, to tell thin coverage from a hard place.
+
+``--factors`` reads, after each reset, every factor a ``[randomize]`` task drew (light, colours,
+table pattern, camera offsets, cube physics, servos, distractors; plus the bearing) from the
+env's model, and gives per factor the success of its low, middle and high third of the seeds
+for each file, and for the last file the AUC of the failures (the chance that a failed seed's
+value is above a successful one's: 0.5 = no association) with a two-sided permutation p-value.
+With about 20 factors, only p below 0.05 / (their number) stands after Bonferroni.
 """
 
 from __future__ import annotations
@@ -25,7 +34,10 @@ import numpy as np
 
 from so101_sim.harness.stats import wilson_interval
 from so101_sim.sim import PickPlaceEnv
+from so101_sim.sim.glcheck import mujoco
 from so101_sim.tasks.layouts import PAN_AXIS_XY
+
+LUMA = np.array([0.299, 0.587, 0.114])  # Rec. 601 weights: how bright a colour looks
 
 
 def _load(path: Path) -> tuple[str, dict[int, tuple[bool, str | None]]]:
@@ -55,10 +67,127 @@ def bearings(task: str, seeds: list[int]) -> np.ndarray:
         env.close()
 
 
+def _angle_deg(q: np.ndarray, q0: np.ndarray) -> float:
+    """Rotation angle between two unit quaternions (degrees)."""
+    return math.degrees(2 * math.acos(min(1.0, abs(float(np.dot(q, q0))))))
+
+
+def factors(task: str, seeds: list[int]) -> dict[str, np.ndarray]:
+    """Each randomized factor's value per seed, read from the env's model after one reset
+    (state only). A task without ``[randomize]`` gives the bearing alone."""
+    env = PickPlaceEnv(task=task, obs_type="state")
+    try:
+        m = env.model
+        key, table, cube = m.light("key").id, m.geom("table").id, env.ids.cube_geom
+        cams = [m.camera(c).id for c in ("front", "side")]
+        # read before the first reset: the model is still the nominal scene
+        cam0 = (m.cam_pos[cams].copy(), m.cam_quat[cams].copy(), m.cam_fovy[cams].copy())
+        kp0, damp0 = float(m.actuator_gainprm[0, 0]), float(m.dof_damping[env.ids.arm_qvel[0]])
+        tex = m.texture("table_tex").id if mujoco.mj_name2id(
+            m, mujoco.mjtObj.mjOBJ_TEXTURE, "table_tex") >= 0 else -1
+        yellow = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_MATERIAL, "yellow")
+        extra = [g for g in range(m.ngeom)
+                 if (mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or "")
+                 .startswith("distractor_")]
+        rows: list[dict[str, float]] = []
+        for seed in seeds:
+            env.reset(seed=int(seed))
+            x, y = env.cube_pos()[:2]
+            row = {"bearing (deg)": math.degrees(math.atan2(y - PAN_AXIS_XY[1],
+                                                            x - PAN_AXIS_XY[0]))}
+            if env.task.randomize is not None:
+                up = -m.light_dir[key]
+                row["light azimuth (deg)"] = math.degrees(math.atan2(up[1], up[0]))
+                row["light elevation (deg)"] = math.degrees(math.asin(float(up[2])))
+                row["light intensity"] = float(m.light_diffuse[key, 0])
+                row["ambient"] = float(m.vis.headlight.ambient[0])
+                row["table luminance"] = float(LUMA @ m.geom_rgba[table, :3])
+                if tex >= 0:  # texels are 255 * (1 - contrast * pattern), pattern in 0..1
+                    n = m.tex_width[tex] * m.tex_height[tex] * 3
+                    row["table pattern contrast"] = 1 - float(
+                        m.tex_data[m.tex_adr[tex]:m.tex_adr[tex] + n].min()) / 255
+                row["cube red"] = float(m.geom_rgba[cube, 0])
+                row["cube green+blue"] = float(m.geom_rgba[cube, 1:3].mean())
+                if yellow >= 0:
+                    row["robot luminance"] = float(LUMA @ m.mat_rgba[yellow, :3])
+                for i, name in enumerate(("front", "side")):
+                    row[f"{name} camera shift (mm)"] = 1000 * float(
+                        np.linalg.norm(m.cam_pos[cams[i]] - cam0[0][i]))
+                    row[f"{name} camera turn (deg)"] = _angle_deg(m.cam_quat[cams[i]], cam0[1][i])
+                    row[f"{name} camera fovy change (deg)"] = float(m.cam_fovy[cams[i]]
+                                                                    - cam0[2][i])
+                row["cube size (mm)"] = 2000 * float(m.geom_size[cube, 0])
+                row["cube mass (g)"] = 1000 * float(m.body_mass[m.geom_bodyid[cube]])
+                row["cube friction"] = float(m.geom_friction[cube, 0])
+                row["servo gain factor"] = float(m.actuator_gainprm[0, 0]) / kp0
+                row["servo damping factor"] = float(m.dof_damping[env.ids.arm_qvel[0]]) / damp0
+                row["distractors"] = float(sum(m.geom_rgba[g, 3] > 0 for g in extra))
+            rows.append(row)
+        return {k: np.array([r[k] for r in rows]) for k in rows[0]}
+    finally:
+        env.close()
+
+
+def failure_auc(values: np.ndarray, failed: np.ndarray, rng: np.random.Generator,
+                permutations: int = 10000) -> tuple[float, float]:
+    """P(a failed seed's value > a successful seed's value), ties half, and its two-sided
+    permutation p-value (labels shuffled `permutations` times)."""
+    ranks = _midranks(values)
+    n_fail, n_ok = int(failed.sum()), int((~failed).sum())
+    if n_fail == 0 or n_ok == 0:
+        return float("nan"), float("nan")
+
+    def auc(mask: np.ndarray) -> np.ndarray:
+        u = (ranks * mask).sum(axis=-1) - n_fail * (n_fail + 1) / 2
+        return u / (n_fail * n_ok)
+
+    observed = float(auc(failed))
+    shuffled = np.array([rng.permutation(failed) for _ in range(permutations)])
+    null = auc(shuffled)
+    p = (1 + int((np.abs(null - 0.5) >= abs(observed - 0.5) - 1e-12).sum())) / (1 + permutations)
+    return observed, p
+
+
+def _midranks(values: np.ndarray) -> np.ndarray:
+    order = np.argsort(values, kind="stable")
+    ranks = np.empty(len(values))
+    ranks[order] = np.arange(1, len(values) + 1)
+    for v in np.unique(values):  # ties share their mean rank
+        tie = values == v
+        ranks[tie] = ranks[tie].mean()
+    return ranks
+
+
+def factor_table(loaded: list, names: list[str], seeds: list[int], task: str) -> None:
+    """Print success per third of each factor for every file, and the last file's AUC."""
+    values = {k: v for k, v in factors(task, seeds).items() if np.ptp(v) > 0}  # drawn ones
+    failed = np.array([not loaded[-1][1][s][0] for s in seeds])
+    rng = np.random.default_rng(0)
+    head = ["factor", "range seen", *(f"{n}: low / mid / high third" for n in names),
+            "AUC of failures (last)", "p (last)"]
+    print(f"task {task}, {len(seeds)} seeds, {int(failed.sum())} failures in the last file; "
+          f"Bonferroni threshold for {len(values)} factors: p < {0.05 / len(values):.4f}")
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
+    for name, v in values.items():
+        thirds = np.array_split(np.argsort(v, kind="stable"), 3)
+        cells = []
+        for _, ep in loaded:
+            wins = [sum(ep[seeds[i]][0] for i in t) for t in thirds]
+            cells.append(" / ".join(f"{w}/{len(t)}" for w, t in zip(wins, thirds, strict=True)))
+        auc, p = failure_auc(v, failed, rng)
+        print(f"| {name} | {v.min():.3g} to {v.max():.3g} | " + " | ".join(cells)
+              + f" | {auc:.2f} | {p:.3g} |")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("evals", nargs="+", type=Path, help="eval_info.json files (or folders)")
     ap.add_argument("--bins", type=int, default=4, help="equal-count bearing bins (default 4)")
+    ap.add_argument("--factors", action="store_true", help="success by each randomized "
+                    "factor of the scene instead of by bearing bins")
+    ap.add_argument("--task", help="the task file the evaluations ran (a .toml path), for a "
+                    "task outside envs/; its name must be the one the files give")
     ap.add_argument("--demos", type=Path, help="a recorded dataset of the same task: its "
                     "episodes' start bearings per bin")
     args = ap.parse_args(argv)
@@ -70,6 +199,17 @@ def main(argv: list[str] | None = None) -> int:
         sys.exit(f"the files are of tasks {sorted(tasks)} on different seeds; expected one task "
                  "on the same seeds (evaluations of one run's checkpoints, or paired runs)")
     task = tasks.pop()
+    if args.task is not None:
+        from so101_sim.tasks import load_task
+
+        if load_task(args.task).name != task:
+            sys.exit(f"--task {args.task} is task {load_task(args.task).name!r}, but the files "
+                     f"are of {task!r}; pass the task file those evaluations ran")
+        task = args.task
+    if args.factors:
+        factor_table(loaded, [p.stem if p.is_file() else p.name for p in args.evals], seeds,
+                     task)
+        return 0
     ang = bearings(task, seeds)
     edges = np.quantile(ang, np.linspace(0, 1, args.bins + 1))
 
