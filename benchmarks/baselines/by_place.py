@@ -55,16 +55,7 @@ def _load(path: Path) -> tuple[str, dict[int, tuple[bool, str | None]]]:
 
 def bearings(task: str, seeds: list[int]) -> np.ndarray:
     """The cube's start bearing (degrees) around the pan axis, one reset per seed."""
-    env = PickPlaceEnv(task=task, obs_type="state")
-    try:
-        out = []
-        for seed in seeds:
-            env.reset(seed=int(seed))
-            x, y = env.cube_pos()[:2]
-            out.append(math.degrees(math.atan2(y - PAN_AXIS_XY[1], x - PAN_AXIS_XY[0])))
-        return np.array(out)
-    finally:
-        env.close()
+    return factors(task, seeds)["bearing (deg)"]
 
 
 def _angle_deg(q: np.ndarray, q0: np.ndarray) -> float:
