@@ -8,6 +8,7 @@ like with like: fp32, bf16 autocast, bf16 + channels_last memory format, bf16 + 
 (inductor on CPU; compile time is reported apart from the steady state), 1 vs all threads, and
 the batch in 2 parts of one thread each (`so101_sim.train.threads.BatchParts`, what `train`
 does beside a busy neighbour). `--busy` times every variant beside one spinning process too.
+A preset with an ``[augment]`` section (cpu_aug) also pays for its image transforms each step.
 The first `--warmup` steps are excluded. Pause other CPU work while it runs.
 `--device cuda` times the same steps on a GPU (bf16 autocast there is CUDA's; the CPU-only
 variants, compile aside, mean nothing on it), synchronising before each clock read.
@@ -42,6 +43,7 @@ def child(preset_name: str, steps: int, warmup: int, opts: dict, device: str = "
     sys.path.insert(0, str(ROOT))
     from lerobot.policies.factory import get_policy_class
 
+    from so101_sim.train.augment import FrameAugmenter
     from so101_sim.train.presets import load_preset, make_config, policy_features
     from so101_sim.train.threads import BatchParts
 
@@ -78,10 +80,12 @@ def child(preset_name: str, steps: int, warmup: int, opts: dict, device: str = "
             return forward(part)[0]
 
     run_parts = BatchParts()
+    # a preset with [augment] (cpu_aug) pays for its transforms every step, as in the trainer
+    augment = FrameAugmenter(preset.augment) if preset.augment else dict
 
     def step() -> float:
         opt.zero_grad(set_to_none=True)
-        loss = run_parts(batch_loss, batch, opts.get("parts", 1))
+        loss = run_parts(batch_loss, augment(dict(batch)), opts.get("parts", 1))
         opt.step()
         return loss
 

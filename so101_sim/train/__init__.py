@@ -1,9 +1,10 @@
 """Train: lerobot's DiffusionPolicy (or ACT) on a recorded dataset, fast on a CPU
 (``so101-sim train``).
 
-``trainer.train`` (frames decoded once by ``frame_cache``, EMA weights, resumable state in
-``state``, thread control in ``threads``) from a preset (``presets``: ``policy/presets/*.toml``);
-``checkpoint`` is the one reader of the folders it writes. torch loads on first use.
+``trainer.train`` (frames decoded once by ``frame_cache``, optionally jittered by ``augment``,
+EMA weights, resumable state in ``state``, thread control in ``threads``) from a preset
+(``presets``: ``policy/presets/*.toml``); ``checkpoint`` is the one reader of the folders it
+writes. torch loads on first use.
 """
 
 from typing import Any

@@ -5,7 +5,8 @@ suite's baselines) or ``[act]`` (`ACTConfig`). A preset must set every field of 
 changes the model or its training, so no lerobot default leaks in silently (0.6.1's defaults
 differ from the seed); the loader refuses a preset with a missing or unknown field. Only the
 features (taken from the dataset) and the hub bookkeeping fields are left out. A variant names
-``base = "cpu"`` and sets only what differs.
+``base = "cpu"`` and sets only what differs. An optional ``[augment]`` section turns on
+lerobot's image transforms for training (`so101_sim.train.augment`).
 """
 
 from __future__ import annotations
@@ -60,6 +61,7 @@ class Preset:
     policy_type: str                 # "diffusion" or "act": lerobot's config type
     policy: dict[str, Any]           # that config's kwargs, None/tuples restored
     path: Path
+    augment: dict[str, Any] | None = None  # [augment]: lerobot ImageTransforms (train/augment.py)
 
 
 def available_presets() -> list[str]:
@@ -157,13 +159,22 @@ def load_preset(name_or_path: str | Path) -> Preset:
                           "train (see policy/presets/cpu.toml and act.toml)")
     policy_type = sections[0]
     policy = _convert_policy(raw[policy_type], policy_type, path)
+    augment = raw.get("augment")
+    if augment is not None:
+        from so101_sim.train.augment import transforms_config
+
+        try:
+            transforms_config(augment, f"{path}: [augment]")
+        except ValueError as e:
+            raise PresetError(f"{e} (see policy/presets/cpu_aug.toml)") from None
     if len(size) != 2 or min(size) < 16:
         raise PresetError(f"{path}: [images] size {list(size)} must be [height, width], each >= 16")
     if norm not in IMAGE_NORMALIZATIONS:
         raise PresetError(f"{path}: [images] normalize {norm!r} must be one of "
                           f"{IMAGE_NORMALIZATIONS}")
     return Preset(name=name, description=description, image_size=size, image_normalize=norm,
-                  train=settings, policy_type=policy_type, policy=policy, path=path)
+                  train=settings, policy_type=policy_type, policy=policy, path=path,
+                  augment=augment)
 
 
 def make_config(preset: Preset, input_features: dict, output_features: dict):

@@ -69,11 +69,14 @@ def list_checkpoints(out: Path) -> list[Path]:
 
 def architecture(preset: Preset) -> dict[str, Any]:
     """What a preset fixes about the model: its config's fields and image size (and the policy
-    type where it is not diffusion, so runs from before ACT compare equal)."""
+    type where it is not diffusion, and the augmentation where there is one, so runs from before
+    those existed compare equal)."""
     arch = json.loads(json.dumps(preset.policy, default=str))
     arch["image_size"] = list(preset.image_size)
     if preset.policy_type != "diffusion":
         arch["policy_type"] = preset.policy_type
+    if preset.augment is not None:  # the recipe's frames; runs without it compare as before
+        arch["augment"] = json.loads(json.dumps(preset.augment))
     return arch
 
 

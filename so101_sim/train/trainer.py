@@ -3,8 +3,8 @@ EMA weights.
 
 What differs from `lerobot-train`: frames are decoded and resized once into memory
 (`frame_cache`), batches are gathered by array indexing with lerobot's padding rules, an EMA copy
-of the weights is kept (diffusers' `EMAModel`, the seed's power 0.75 / max 0.9999) and is what
-gets saved for evaluation, and `--resume` restores every RNG so a resumed run is the same run.
+of the weights is kept (diffusers' `EMAModel`, the seed's power 0.75 / max 0.9999) for evaluation,
+`--resume` restores every RNG (a resumed run is the same run), a preset's [augment] jitters frames.
 
 Run layout under `out/`:
     checkpoints/step_NNNNNNN/pretrained_model/   EMA weights in lerobot's format (+ processors)
@@ -37,6 +37,7 @@ import torch
 from tqdm import tqdm
 
 from so101_sim.dataset.reader import NotADatasetError, open_lerobot_dataset
+from so101_sim.train.augment import FrameAugmenter
 from so101_sim.train.checkpoint import init_weights_from
 from so101_sim.train.frame_cache import load_frames
 from so101_sim.train.presets import Preset, load_preset, make_config, policy_features
@@ -150,7 +151,6 @@ class TrainResult:
     wall_s: float
     samples_per_s: float
     pretrained_dir: Path
-
 
 
 @lock_scope  # releases the run folder's lock (hold_folder below)
@@ -292,7 +292,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             "policy_image_size": list(preset.image_size),
             "image_pipeline": "so101_sim.utils.image_pipeline.resize_frames (bilinear, antialias)",
             "policy_type": cfg.type, "weights": "EMA", "init_from": started_from,
-            "batch_size": batch_size, "precision": precision,
+            "augment": preset.augment, "batch_size": batch_size, "precision": precision,
             "precision_history": precision_history, "total_steps": steps, "device": device,
             "train_settings": asdict(ts)}
 
@@ -332,7 +332,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     if threads:
         torch.set_num_threads(threads)
     tuner = AdaptiveThreads() if device == "cpu" and not threads else None
-    run_parts = BatchParts()
+    run_parts, augment = BatchParts(), FrameAugmenter(preset.augment) if preset.augment else dict
 
     def batch_loss(part: dict) -> torch.Tensor:
         with torch.autocast(device, dtype=torch.bfloat16, enabled=precision == "bf16"):
@@ -347,7 +347,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
         while step < end and stop["signal"] is None:
             t_step = time.perf_counter()
             idx = rng.choice(demos.starts, size=batch_size)
-            batch = pre(gather_batch(demos, idx, obs_offsets, act_offsets))
+            batch = pre(augment(gather_batch(demos, idx, obs_offsets, act_offsets)))
             optimizer.zero_grad(set_to_none=True)
             loss_val = run_parts(batch_loss, batch, tuner.parts if tuner else 1)
             if ts.grad_clip_norm > 0:
