@@ -1,0 +1,118 @@
+"""`so101-sim train` on a machine that has OpenCV but no PyAV (the lent GPU image).
+
+    python benchmarks/gpu/train_without_pyav.py --preset cpu --dataset D --out O ...
+
+PyAV's wheel (~35 MB) does not fit the 64 MiB that travels to a lent GPU with the repo and a
+dataset, and the trainer only needs it to decode each video once into the frame cache. Where
+`import av` fails, a stand-in module decodes with OpenCV's bundled FFmpeg instead (frame i of a
+file at time i / fps, which is how `benchmarks/gpu/pack_dataset.py` writes them); every other
+use of `av` raises. Prints one line when the stand-in is used. With PyAV present it changes
+nothing.
+"""
+
+from __future__ import annotations
+
+import importlib.machinery
+import sys
+import tempfile
+import types
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+
+class _Frame:
+    def __init__(self, rgb: np.ndarray, time: float) -> None:
+        self._rgb = rgb
+        self.time = time
+
+    def to_ndarray(self, format: str = "rgb24") -> np.ndarray:
+        if format != "rgb24":
+            raise ValueError(f"the OpenCV stand-in for PyAV decodes rgb24 only, not {format!r}")
+        return self._rgb
+
+
+class _Container:
+    def __init__(self, path: str) -> None:
+        import cv2
+
+        self._cap = cv2.VideoCapture(path)
+        if not self._cap.isOpened():
+            raise FileNotFoundError(f"{path}: OpenCV could not open this video")
+        self._fps = float(self._cap.get(cv2.CAP_PROP_FPS))
+        self.streams = types.SimpleNamespace(video=[types.SimpleNamespace(thread_type=None)])
+
+    def __enter__(self) -> _Container:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._cap.release()
+
+    def decode(self, stream: object) -> Iterator[_Frame]:
+        i = 0
+        while True:
+            ok, bgr = self._cap.read()
+            if not ok:
+                return
+            yield _Frame(np.ascontiguousarray(bgr[..., ::-1]), i / self._fps)
+            i += 1
+
+
+class _Unavailable:
+    """Stands for any other PyAV name: fine in annotations and defaults, an error when used."""
+
+    def __getattr__(self, name: str) -> _Unavailable:
+        return self
+
+    def __or__(self, other: object) -> _Unavailable:  # `av.codec.Codec | None` annotations
+        return self
+
+    __ror__ = __or__
+
+    def __call__(self, *args: object, **kwargs: object) -> None:
+        raise RuntimeError("PyAV is not installed here; only decoding for the frame cache is "
+                           "stood in for. Install av to record or write videos")
+
+
+def _missing(name: str) -> _Unavailable:
+    if name.startswith("__"):  # inspect and pickle probe dunders such as __file__
+        raise AttributeError(name)
+    return _Unavailable()
+
+
+def install_stand_in() -> None:
+    """Make `import av` give the OpenCV stand-in, unless PyAV itself imports."""
+    try:
+        import av  # noqa: F401
+        return
+    except ImportError:
+        pass
+    module = types.ModuleType("av")
+    module.__spec__ = importlib.machinery.ModuleSpec("av", None)  # find_spec("av") works
+    module.__version__ = "0+opencv-stand-in"
+    module.open = _Container
+    module.logging = types.SimpleNamespace(
+        WARNING=30, ERROR=40, INFO=20, set_level=lambda level: None,
+        restore_default_callback=lambda: None, get_level=lambda: 30)
+    module.__getattr__ = _missing
+    sys.modules["av"] = module
+    # lerobot.datasets asks importlib.metadata for av's version before it imports anything
+    meta = Path(tempfile.mkdtemp(prefix="av_stand_in_")) / "av-0.0.0.dist-info"
+    meta.mkdir()
+    (meta / "METADATA").write_text("Metadata-Version: 2.1\nName: av\nVersion: 0.0.0\n")
+    sys.path.append(str(meta.parent))
+    print("PyAV is missing: the frame cache decodes with OpenCV (benchmarks/gpu/"
+          "train_without_pyav.py)", flush=True)
+
+
+def main() -> int:
+    install_stand_in()
+    from so101_sim.cli import main as cli_main
+
+    sys.argv = ["so101-sim", "train", *sys.argv[1:]]
+    return cli_main()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

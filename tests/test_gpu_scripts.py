@@ -1,0 +1,96 @@
+"""benchmarks/gpu: a packed dataset and the PyAV stand-in give the trainer the frames it expects."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from so101_sim.dataset.reader import open_lerobot_dataset
+from so101_sim.record import record
+from so101_sim.train.frame_cache import decode_camera
+
+GPU = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu"
+SIZE = (24, 32)
+
+
+def _pack_module():
+    spec = importlib.util.spec_from_file_location("pack_dataset", GPU / "pack_dataset.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def packed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    root = tmp_path_factory.mktemp("gpu")
+    record(root / "src", 1, image_size=(48, 64), progress=False)
+    _pack_module().pack(root / "src", root / "packed", SIZE, crf=14)
+    return root / "src", root / "packed"
+
+
+def test_packing_keeps_the_recording_and_shrinks_the_videos(packed, capsys) -> None:
+    src, out = packed
+    assert json.loads((out / "meta" / "info.json").read_text()) == \
+        json.loads((src / "meta" / "info.json").read_text())  # eval still renders at 48x64
+    a, b = open_lerobot_dataset(src), open_lerobot_dataset(out)
+    for key in a.meta.video_keys:
+        before, after = decode_camera(a, key, SIZE), decode_camera(b, key, SIZE)
+        assert after.shape == before.shape
+        err = np.abs(after.astype(np.int16) - before.astype(np.int16))
+        assert err.mean() < 3.0, err.mean()  # crf 14, yuv444p: a few grey levels at most
+    videos = sorted(out.glob("videos/**/*.mp4"))
+    assert videos and all(v.stat().st_size < w.stat().st_size
+                          for v, w in zip(videos, sorted(src.glob("videos/**/*.mp4")),
+                                          strict=True))
+    with pytest.raises(SystemExit, match="exists; remove it"):
+        _pack_module().pack(src, out, SIZE, crf=14)
+
+
+_WITHOUT_PYAV = """
+import sys
+import numpy as np
+class Block:
+    def find_spec(self, name, path=None, target=None):
+        if name == "av" or name.startswith("av."):
+            raise ImportError("PyAV hidden for this test")
+sys.meta_path.insert(0, Block())
+sys.path.insert(0, sys.argv[1])
+import train_without_pyav
+train_without_pyav.install_stand_in()
+from so101_sim.dataset.reader import open_lerobot_dataset
+from so101_sim.train.frame_cache import decode_camera
+ds = open_lerobot_dataset(sys.argv[2])
+np.save(sys.argv[3], decode_camera(ds, ds.meta.video_keys[0], (24, 32)))
+"""
+
+
+def test_the_stand_in_decodes_what_pyav_decodes(packed, tmp_path: Path) -> None:
+    """Without PyAV, the trainer's frame cache reads the packed videos through OpenCV and gets
+    the same frames, bit for bit, in the same order."""
+    _, out = packed
+    got = tmp_path / "frames.npy"
+    run = subprocess.run([sys.executable, "-c", _WITHOUT_PYAV, str(GPU), str(out), str(got)],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "PyAV is missing: the frame cache decodes with OpenCV" in run.stdout
+    ds = open_lerobot_dataset(out)
+    expected = decode_camera(ds, ds.meta.video_keys[0], SIZE)
+    np.testing.assert_array_equal(np.load(got), expected)
+
+
+def test_with_pyav_present_the_stand_in_steps_aside() -> None:
+    sys.path.insert(0, str(GPU))
+    try:
+        import train_without_pyav
+    finally:
+        sys.path.remove(str(GPU))
+    import av
+
+    train_without_pyav.install_stand_in()
+    assert sys.modules["av"] is av and hasattr(av, "VideoFrame")
