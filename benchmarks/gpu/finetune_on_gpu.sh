@@ -56,8 +56,7 @@ for name in "${names[@]}"; do
   tail -n 1 "$run/train_log.jsonl"
   pack=$runs/pack_$name
   rm -rf "$pack" && mkdir -p "$pack"
-  cp "$last"/pretrained_model/* "$pack"/ 2>/dev/null || cp "$last"/* "$pack"/
-  rm -f "$pack/training_state.pt"
+  cp "$last"/pretrained_model/* "$pack"/  # the run's final policy, or its last checkpoint's
   cp "$run/train_log.jsonl" "$pack"/
   "$py" -c 'import sys, torch
 from safetensors.torch import load_file, save_file
