@@ -103,15 +103,15 @@ class EnvWorker:
         return self._timed(self._reset, seed, film)
 
     def _reset(self, seed: int, film: bool) -> dict[str, Any]:
-        from so101_sim.harness.video import EpisodeVideo
-
         self._drop_video()
         self.env.reset(seed=seed)
         self.steps = 0
         self.digest = hashlib.sha256()
         if self.tape is not None:
             self.tape.start(seed, self.env.initial_cube_pose)
-        if film:
+        if film:  # imported here: a run without videos never loads cv2 and imageio
+            from so101_sim.harness.video import EpisodeVideo
+
             if self._tmp is None:
                 self._tmp = Path(tempfile.mkdtemp(prefix="so101-eval-video-"))
             self.video = EpisodeVideo(self._tmp / f"seed{seed}.mp4", self.env.task.fps, seed)

@@ -258,7 +258,7 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
 
         select_gl_backend()  # choose (and print) once here: workers inherit MUJOCO_GL
     pool = start_pool(cfg, min(n_envs, len(todo)), backend=backend, ray_address=ray_address,
-                      name="so101-eval-worker", preload=_preload(cfg, sink is not None),
+                      name="so101-eval-worker", preload=_preload(cfg, sink is not None, videos > 0),
                       timeout_s=worker_timeout_s, log=log)
     slots = [_Slot() for _ in range(pool.size)]
     # Rows per policy forward: the policy's own batch size (LeRobotPolicy pads to it), else all.
@@ -372,9 +372,12 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
     return n_run, workers, forwards.peak
 
 
-def _preload(cfg: EnvWorkerConfig, rollouts: bool) -> tuple[str, ...]:
-    """Modules the fork server imports once for every worker (torch for in-worker resizes)."""
+def _preload(cfg: EnvWorkerConfig, rollouts: bool, videos: bool) -> tuple[str, ...]:
+    """Modules the fork server imports once for every worker (torch for in-worker resizes;
+    the video writer's cv2 and imageio, about 0.06 s a worker, when any episode is filmed)."""
     mods = ["so101_sim.sim.env"]
+    if videos:
+        mods.append("so101_sim.harness.video")
     if cfg.resize_to is not None:
         mods.append("so101_sim.utils.image_pipeline")
     if rollouts:
