@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 
 from so101_sim.dataset.reader import open_lerobot_dataset
@@ -39,6 +40,10 @@ def test_packing_keeps_the_recording_and_shrinks_the_videos(packed, capsys) -> N
     assert json.loads((out / "meta" / "info.json").read_text()) == \
         json.loads((src / "meta" / "info.json").read_text())  # eval still renders at 48x64
     a, b = open_lerobot_dataset(src), open_lerobot_dataset(out)
+    # the parquet files are zstd now, their tables the same, read back through lerobot
+    assert {pq.ParquetFile(f).metadata.row_group(0).column(0).compression
+            for f in out.rglob("*.parquet")} == {"ZSTD"}
+    assert b.hf_dataset.to_pandas().equals(a.hf_dataset.to_pandas())
     for key in a.meta.video_keys:
         before, after = decode_camera(a, key, SIZE), decode_camera(b, key, SIZE)
         assert after.shape == before.shape
