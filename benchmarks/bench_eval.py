@@ -13,7 +13,9 @@ data's size, then resize_frames) unless --image-size is given.
 --env.type=so101_pick_place` and through the harness, both rendering at the policy's input
 size (lerobot-eval cannot resize) and both writing 10 videos (lerobot-eval always does):
 wall time of each whole command, the speed-up (target >= 4x) and whether the success rates'
-95% intervals overlap.
+95% intervals overlap. `--precision bf16` runs (b) with bfloat16 autocast in both tools (the
+harness's `--precision bf16`, lerobot-eval's `--policy.use_amp=true`), so both do the same
+arithmetic; fp32 (the default) is both tools' default.
 (c) with --paths, run (a) against --faithful on the same seeds, side by side: wall time of
 each, the ratio, and `so101-sim compare` on the pair (both rates, the discordant seeds, exact
 McNemar p). (d) with --bf16, run (a) against the same with `--precision bf16`, likewise.
@@ -70,13 +72,14 @@ def run_harness(ckpt: Path, out: Path, episodes: int, n_envs: int, videos: int,
 
 
 def run_lerobot_eval(ckpt: Path, out: Path, episodes: int, n_envs: int,
-                     image_size: tuple[int, int], task: str, episode_length: int) -> tuple:
+                     image_size: tuple[int, int], task: str, episode_length: int,
+                     amp: bool = False) -> tuple:
     cmd = [str(BIN / "lerobot-eval"), f"--policy.path={ckpt}", "--policy.device=cpu",
            "--env.type=so101_pick_place", "--env.discover_packages_path=so101_sim.lerobot_plugin",
            f"--env.task={task}", f"--env.episode_length={episode_length}",
            f"--env.image_height={image_size[0]}", f"--env.image_width={image_size[1]}",
            f"--eval.n_episodes={episodes}", f"--eval.batch_size={n_envs}",
-           "--seed=100000", f"--output_dir={out}"]
+           "--seed=100000", f"--output_dir={out}", f"--policy.use_amp={str(amp).lower()}"]
     wall = timed(cmd)
     info = json.loads((out / "eval_info.json").read_text())
     agg = info.get("overall", info.get("aggregated"))
@@ -108,6 +111,8 @@ def main() -> None:
                         help="env workers (default 16, as `so101-sim eval`)")
     parser.add_argument("--image-size", default=None, help="HxW for (a); default: harness's")
     parser.add_argument("--compare-lerobot", action="store_true", help="also run (b)")
+    parser.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
+                        help="(b)'s forwards in both tools: fp32, or bfloat16 autocast in both")
     parser.add_argument("--paths", action="store_true",
                         help="run (c): the default render path against --faithful")
     parser.add_argument("--bf16", action="store_true",
@@ -163,8 +168,11 @@ def main() -> None:
     if not args.compare_lerobot:
         return
     inp = policy_input_size(ckpt)
-    w_h, a_h = run_harness(ckpt, work / "harness_b", n, k, min(10, n), inp, task)
-    w_l, a_l = run_lerobot_eval(ckpt, work / "lerobot_b", n, k, inp, task, episode_length)
+    bf16 = args.precision == "bf16"
+    w_h, a_h = run_harness(ckpt, work / "harness_b", n, k, min(10, n), inp, task,
+                           ("--precision", args.precision))
+    w_l, a_l = run_lerobot_eval(ckpt, work / "lerobot_b", n, k, inp, task, episode_length,
+                                amp=bf16)
     k_h, k_l = a_h["n_success"], a_l["pc_success"] * n / 100
     from so101_sim.harness.stats import wilson_interval
 
@@ -172,7 +180,8 @@ def main() -> None:
     lo_l, hi_l = wilson_interval(round(k_l), n)
     overlap = lo_h <= hi_l and lo_l <= hi_h
     print(f"(b) same checkpoint and seeds 100000.., {inp[0]}x{inp[1]} renders, {k} envs, "
-          f"{min(10, n)} videos each:")
+          f"{min(10, n)} videos each, "
+          f"{'bf16 autocast in both' if bf16 else 'fp32 in both'}:")
     for name, wall, k_x, agg in (("harness", w_h, k_h, a_h), ("lerobot-eval", w_l, k_l, a_l)):
         print(f"    {name:12s} {wall:7.1f} s  success {rate(k_x, n)}  "
               f"(its loop {agg['eval_s']:.1f} s)")
