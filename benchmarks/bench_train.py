@@ -50,7 +50,7 @@ def run_ours(dataset: Path, preset: str, steps: int, batch: int, work: Path,
     code = ("import sys, json; from pathlib import Path; from so101_sim.train import train; "
             f"r = train(Path({str(dataset)!r}), Path({str(out)!r}), preset_name={preset!r}, "
             f"steps={steps}, batch_size={batch}, progress=False, log_every=1, "
-            f"precision={precision!r})")
+            f"precision={precision!r}, keep_frame_cache=True)")
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

@@ -147,6 +147,9 @@ def test_stop_at_is_the_prefix_of_the_long_run(dataset: Path, tiny: Path,
     paused = train(dataset, tmp_path / "b", preset_name=str(tiny), steps=6, stop_at=3, **fixed)
     assert paused.step == 3 and paused.pretrained_dir.parent.name == "step_0000003"
     assert not (tmp_path / "b" / "pretrained_model").exists()
+    # a finished run drops its decoded frames; a paused one keeps them for --resume
+    assert not (tmp_path / "a" / "frame_cache").exists()
+    assert any((tmp_path / "b" / "frame_cache").glob("*.npy"))
     log_a = [json.loads(x) for x in (tmp_path / "a" / "train_log.jsonl").read_text().splitlines()]
     log_b = [json.loads(x) for x in (tmp_path / "b" / "train_log.jsonl").read_text().splitlines()]
     assert [r["lr"] for r in log_b] == [r["lr"] for r in log_a[:3]]
@@ -163,8 +166,12 @@ def test_stop_at_is_the_prefix_of_the_long_run(dataset: Path, tiny: Path,
 def test_resume_continues_exactly(dataset: Path, tiny: Path, tmp_path: Path) -> None:
     # a fixed thread count: the adaptive one may cut steps into parts if the machine is busy
     fixed = {"progress": False, "threads": 1}
-    straight = train(dataset, tmp_path / "a", preset_name=str(tiny), steps=4, **fixed)
+    straight = train(dataset, tmp_path / "a", preset_name=str(tiny), steps=4,
+                     keep_frame_cache=True, **fixed)
+    assert any((tmp_path / "a" / "frame_cache").glob("*.npy"))
     train(dataset, tmp_path / "b", preset_name=str(tiny), steps=2, **fixed)
+    # b finished at 2 and dropped its frames: stretching it to 4 decodes again, same result
+    assert not (tmp_path / "b" / "frame_cache").exists()
     with pytest.raises(TrainError, match="--resume"):
         train(dataset, tmp_path / "b", preset_name=str(tiny), steps=4, **fixed)
     resumed = train(dataset, tmp_path / "b", preset_name=str(tiny), steps=4, resume=True,

@@ -62,7 +62,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         r = train(Path(args.dataset), Path(args.out), preset_name=args.preset, steps=args.steps,
                   batch_size=args.batch_size, resume=args.resume, precision=args.precision,
                   device=args.device, threads=args.threads, stop_at=args.stop_at,
-                  init_from=Path(args.init_from) if args.init_from else None)
+                  init_from=Path(args.init_from) if args.init_from else None,
+                  keep_frame_cache=args.keep_frame_cache)
     except (TrainError, PresetError) as e:
         print(f"so101-sim train: {e}", file=sys.stderr)
         return 2

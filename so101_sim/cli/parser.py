@@ -142,6 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "at equal steps)")
     tr.add_argument("--resume", action="store_true",
                     help="continue from the last checkpoint in --out, exactly")
+    tr.add_argument("--keep-frame-cache", action="store_true",
+                    help="keep the decoded frames (--out/frame_cache, GBs) after the last step; "
+                         "by default they are deleted then (a pause or --stop-at keeps them)")
     tr.add_argument("--init-from", default=None, metavar="CHECKPOINT",
                     help="start a new run from this checkpoint's weights (fine-tuning, e.g. "
                          "policy/suite_diffusion on more demos); same preset architecture; "

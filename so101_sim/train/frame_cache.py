@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 from pathlib import Path
 
 import av
@@ -102,3 +103,19 @@ def load_frames(dataset, size: tuple[int, int], cache_dir: Path | None) -> dict[
             np.save(tmp, frames[key])
             tmp.replace(path)
     return frames
+
+
+def drop_cache(cache_dir: Path) -> int:
+    """Delete a finished run's frame cache and say so in one line; returns the bytes freed.
+
+    A six-task cache is ~7 GB and nothing else reads it once the run is done (a later
+    `--resume --steps MORE` decodes again, in minutes), so leaving them filled the disk.
+    """
+    cache_dir = Path(cache_dir)
+    if cache_dir.is_symlink() or not cache_dir.is_dir():
+        return 0  # shared with another run (benchmarks link one): not ours to delete
+    freed = sum(f.stat().st_size for f in cache_dir.rglob("*") if f.is_file())
+    shutil.rmtree(cache_dir)
+    print(f"so101-sim train: removed the frame cache {cache_dir} ({freed / 1e9:.2f} GB) now that "
+          "the run is done; --keep-frame-cache keeps it")
+    return freed

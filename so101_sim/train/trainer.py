@@ -14,7 +14,7 @@ Run layout under `out/`:
                                                  crafted file cannot run code on --resume)
     pretrained_model/                            the final EMA policy
     train_log.jsonl                              step, loss, lr, samples/s, EMA decay
-    frame_cache/                                 decoded frames (.npy)
+    frame_cache/                                 decoded frames (.npy), deleted at the last step
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from tqdm import tqdm
 from so101_sim.dataset.reader import NotADatasetError, open_lerobot_dataset
 from so101_sim.train.augment import FrameAugmenter
 from so101_sim.train.checkpoint import init_weights_from
-from so101_sim.train.frame_cache import load_frames
+from so101_sim.train.frame_cache import drop_cache, load_frames
 from so101_sim.train.presets import Preset, load_preset, make_config, policy_features
 from so101_sim.train.state import (
     TrainError,
@@ -159,7 +159,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
           progress: bool = True, log_every: int | None = None,
           precision: str = "fp32", device: str = "cpu",
           threads: int | None = None, stop_at: int | None = None,
-          init_from: Path | None = None) -> TrainResult:
+          init_from: Path | None = None, keep_frame_cache: bool = False) -> TrainResult:
     """Train `preset_name` on the dataset at `dataset_dir`; see the module docstring.
 
     `device` is auto|cpu|cuda|mps (`devices.resolve_device`); `precision` fp32|bf16|auto.
@@ -169,6 +169,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     `stop_at`: save and return at this step while the schedule stays sized for `steps`, so a
     short run is the prefix of the long one (`resume=True` later continues it exactly).
     `init_from`: a checkpoint folder whose weights a new run starts from (fine-tuning).
+    `keep_frame_cache`: keep `frame_cache/` when the run reaches `steps` (default: delete it).
     """
     from diffusers.optimization import get_scheduler
     from diffusers.training_utils import EMAModel
@@ -392,6 +393,8 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     if step == steps:  # the run's own policy; a pause at --stop-at leaves only its checkpoint
         final = out / "pretrained_model"
         copy_policy(ck / "pretrained_model", final)
+        if not keep_frame_cache:
+            drop_cache(out / "frame_cache")
     run_s = time.perf_counter() - t0
     return TrainResult(out=out, step=step, final_loss=loss_val, wall_s=wall,
                        samples_per_s=(step - start_step) * batch_size / max(run_s, 1e-9),
