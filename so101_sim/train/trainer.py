@@ -87,8 +87,7 @@ def load_demos(dataset, preset: Preset, cache_dir: Path | None) -> DemoArrays:
     if not np.array_equal(index, np.arange(len(index))):
         raise TrainError(f"dataset {dataset.meta.root}: frame indices are not 0..N-1 in order; "
                          "train on a dataset written by `so101-sim record` or lerobot")
-    ep_from = np.empty(len(index), dtype=np.int64)
-    ep_to = np.empty(len(index), dtype=np.int64)
+    ep_from, ep_to = np.empty((2, len(index)), dtype=np.int64)
     starts = []
     drop = int(preset.policy.get("drop_n_last_frames", 0))  # ACT samples every frame
     for row in dataset.meta.episodes:
@@ -216,7 +215,6 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     if missing:
         raise TrainError(f"dataset {dataset_dir} lacks {missing}; expected a so101-sim recording")
     cams = tuple(k.split(".")[-1] for k in dataset.meta.video_keys)
-
     torch.manual_seed(ts.seed)
     rng = np.random.default_rng(ts.seed)
     cfg = make_config(preset, *policy_features(preset.image_size, cams,
@@ -229,8 +227,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             started_from = init_weights_from(policy, init_from)
         except (FileNotFoundError, ValueError) as e:
             raise TrainError(f"--init-from: {e}") from None
-    policy.to(device)
-    policy.train()
+    policy.to(device).train()
     pre, post = make_pre_post_processors(cfg, dataset_stats=normalization_stats(dataset, preset))
     # lerobot's AdamW settings for the policy type (ACT: a parameter group for the backbone);
     # clipping only where the preset asks (grad_clip_norm > 0), as the diffusion runs had none.
