@@ -22,7 +22,6 @@ a close: 1 is a plain pick-and-place (the release), each retry of the recovering
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections import Counter
 from pathlib import Path
@@ -30,22 +29,30 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from so101_sim.dataset import SIDECAR, info_features, read_frames, read_sidecar
 from so101_sim.sim import SO101Env
 
 GRIPPER = 5  # action index of the gripper: 0 closed .. 100 open
 
 
 def episodes(folder: Path) -> tuple[str, list[pd.DataFrame]]:
-    """The task and one frame table per episode of a --save-rollouts folder."""
-    meta = folder / "so101_sim_recording.json"
-    files = sorted(folder.glob("data/chunk-*/*.parquet"))
-    if not meta.is_file() or not files:
-        sys.exit(f"{folder}: not a --save-rollouts or recorded folder (expected "
-                 "so101_sim_recording.json and data/chunk-*/*.parquet); pass the DIR given to "
+    """The task and one frame table per episode of a --save-rollouts or recorded folder.
+
+    Each table has ``act``: the executed actions (``action_executed`` where a DART recording
+    keeps them apart from the clean labels, else ``action``)."""
+    features = info_features(folder)
+    if not (folder / SIDECAR).is_file() or "action" not in features:
+        sys.exit(f"{folder}: not a --save-rollouts or recorded folder (expected {SIDECAR} "
+                 "and a LeRobotDataset with an `action` column); pass the DIR given to "
                  "`so101-sim eval --save-rollouts DIR` or `so101-sim record --out DIR`")
-    task = json.loads(meta.read_text())["task"]
-    frames = pd.concat([pd.read_parquet(f) for f in files])
-    return task, [g.sort_values("frame_index") for _, g in frames.groupby("episode_index")]
+    executed = "action_executed" if "action_executed" in features else "action"
+    columns = ["episode_index", "frame_index", "episode_seed", "action", executed]
+    if "episode_failure_mode" in features:
+        columns.append("episode_failure_mode")
+    frames = read_frames(folder, list(dict.fromkeys(columns)))
+    frames["act"] = frames[executed]
+    return (read_sidecar(folder)["task"],
+            [g.sort_values("frame_index") for _, g in frames.groupby("episode_index")])
 
 
 def reopens(grip: np.ndarray, open_at: float, closed_at: float) -> int:
@@ -64,7 +71,7 @@ def reopens(grip: np.ndarray, open_at: float, closed_at: float) -> int:
 def trace(task: str, ep: pd.DataFrame, open_at: float, closed_at: float) -> dict:
     """Replay one episode and summarise its first close and what followed."""
     seed = int(ep["episode_seed"].iloc[0])
-    actions = np.stack(ep["action"].to_numpy()).astype(np.float32)
+    actions = np.stack(ep["act"].to_numpy()).astype(np.float32)
     env = SO101Env(task, obs_type="state")
     env.reset(seed=seed)
     start = env.cube_pos().copy()
