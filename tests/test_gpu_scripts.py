@@ -3,14 +3,20 @@
 from __future__ import annotations
 
 import importlib.util
+import io
 import json
+import os
+import shutil
 import subprocess
 import sys
+import tarfile
 from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+import torch
+from safetensors.torch import load_file
 
 from so101_sim.dataset.reader import open_lerobot_dataset
 from so101_sim.record import record
@@ -23,6 +29,7 @@ SIZE = (24, 32)
 def _pack_module():
     spec = importlib.util.spec_from_file_location("pack_dataset", GPU / "pack_dataset.py")
     module = importlib.util.module_from_spec(spec)
+    sys.modules["pack_dataset"] = module  # --workers pickles its functions by module name
     spec.loader.exec_module(module)
     return module
 
@@ -55,6 +62,29 @@ def test_packing_keeps_the_recording_and_shrinks_the_videos(packed, capsys) -> N
                                           strict=True))
     with pytest.raises(SystemExit, match="exists; remove it"):
         _pack_module().pack(src, out, SIZE, crf=14)
+
+
+def test_packing_in_parallel_can_drop_what_the_trainer_does_not_read(packed, tmp_path) -> None:
+    """--workers re-encodes files in processes with the same result; --drop-columns removes a
+    feature from the tables and info.json and refuses one the trainer reads."""
+    src, one = packed
+    out = tmp_path / "packed2"
+    _pack_module().pack(src, out, SIZE, crf=14, workers=2,
+                        drop=("initial_cube_pose", "episode_seed"))
+    before = json.loads((src / "meta" / "info.json").read_text())
+    after = json.loads((out / "meta" / "info.json").read_text())
+    assert set(before["features"]) - set(after["features"]) == {"initial_cube_pose",
+                                                                "episode_seed"}
+    a, b = open_lerobot_dataset(src), open_lerobot_dataset(out)
+    assert "initial_cube_pose" not in b.hf_dataset.column_names
+    for key in ("observation.state", "action", "index"):
+        assert np.array_equal(np.asarray(b.hf_dataset.with_format("numpy")[key]),
+                              np.asarray(a.hf_dataset.with_format("numpy")[key]))
+    c = open_lerobot_dataset(one)  # packed one file at a time
+    for key in a.meta.video_keys:
+        assert np.array_equal(decode_camera(b, key, SIZE), decode_camera(c, key, SIZE))
+    with pytest.raises(SystemExit, match="--drop-columns action: expected one of"):
+        _pack_module().pack(src, tmp_path / "bad", SIZE, crf=14, drop=("action",))
 
 
 _WITHOUT_PYAV = """
@@ -99,3 +129,34 @@ def test_with_pyav_present_the_stand_in_steps_aside() -> None:
 
     train_without_pyav.install_stand_in()
     assert sys.modules["av"] is av and hasattr(av, "VideoFrame")
+
+
+def test_two_calls_join_the_halves_and_send_back_fp16_policies(packed, tmp_path: Path) -> None:
+    """finetune_from_stash.sh (call 2) joins the half call 1 stashed with the half it carries,
+    trains from the shipped suite weights, and leaves the last and the MID policy in $OUT as
+    fp16 tars (here on the CPU, 2 steps)."""
+    src, one = packed
+    stash, half, out = tmp_path / "stash", tmp_path / "B", tmp_path / "out"
+    camera = sorted((one / "videos").iterdir())[0].name
+    shutil.copytree(one / "videos" / camera, stash / "A" / "videos" / camera)  # call 1's half
+    shutil.copytree(one, half, ignore=lambda d, names: [camera] if d.endswith("videos") else [])
+    env = {**os.environ, "STASH": str(stash), "OUT": str(out), "RUNS": str(tmp_path / "runs"),
+           "DEVICE": "cpu", "PY": sys.executable}
+    done = subprocess.run(["bash", str(GPU / "finetune_from_stash.sh"), str(half), "300",
+                           "t:cpu_ft:4:2", "2"], env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    joined = stash / "data"
+    assert {p.name for p in (joined / "videos").iterdir()} == \
+        {p.name for p in (src / "videos").iterdir()}
+    assert (joined / "meta" / "info.json").is_file()
+    for name in ("t", "mid2"):
+        parts = sorted(out.glob(f"{name}.tar.*"))
+        assert parts, done.stdout[-2000:]
+        unpacked = tmp_path / f"un_{name}"
+        unpacked.mkdir()
+        blob = b"".join(p.read_bytes() for p in parts)
+        with tarfile.open(fileobj=io.BytesIO(blob)) as tar:
+            tar.extractall(unpacked, filter="data")
+        weights = load_file(unpacked / "model.safetensors")
+        assert {v.dtype for v in weights.values() if v.is_floating_point()} == {torch.float16}

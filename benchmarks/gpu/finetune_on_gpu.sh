@@ -9,7 +9,8 @@
 # them), split into 15 MB parts to pass the 16 MiB-per-file limit: `cat NAME.tar.* | tar x`.
 # DATASET is made small enough to travel by benchmarks/gpu/pack_dataset.py; where PyAV is
 # missing the frame cache decodes with OpenCV (benchmarks/gpu/train_without_pyav.py).
-# Wheels of the missing dependencies are installed from .whl/ when it exists (see
+# Wheels of the missing dependencies are installed from .whl/ when it exists and lerobot
+# does not import (see
 # benchmarks/README.md, "gpu_check.sh"). DEVICE=cpu makes it a dry run without a GPU.
 set -uo pipefail
 data=${1:?usage: finetune_on_gpu.sh DATASET OUT TRAIN_S NAME:PRESET:BATCH:STEPS ...}
@@ -23,7 +24,7 @@ here=$(cd "$(dirname "$0")" && pwd)
 repo=$(cd "$here/../.." && pwd)
 mkdir -p "$out" "$runs"
 t0=$SECONDS
-if [ -d "$repo/.whl" ]; then
+if [ -d "$repo/.whl" ] && ! "$py" -c 'import lerobot, diffusers' 2> /dev/null; then
   "$py" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
     --target /tmp/site "$repo"/.whl/*.whl || exit 1
   export PYTHONPATH=/tmp/site:$repo${PYTHONPATH:+:$PYTHONPATH}
