@@ -38,6 +38,19 @@ def test_the_experts_grasp_closes_on_the_cube_and_opens_to_release(tmp_path: Pat
     assert float(cells["nearest_before_cm"]) < 1.0
     assert float(cells["cube_moved_cm"]) > 2.0
     assert int(cells["most_open_after"]) > 30
+    # Every close: one, on the cube, held between the jaws (both pads on it, the joint
+    # stopped open by the cube's width), and the cube rose with the tool.
+    closes = _trace("--every-close", str(rollouts))
+    assert closes.returncode == 0, closes.stderr
+    header, _, *rows = closes.stdout.splitlines()
+    assert len(rows) == 1, closes.stdout
+    cells = dict(zip([c.strip() for c in header.split("|")[1:-1]],
+                     [c.strip() for c in rows[0].split("|")[1:-1]], strict=True))
+    assert cells["seed"] == "100000" and cells["cube"] == "0"
+    assert all(float(d) <= 0.2 for d in cells["pads_at_rise_cm"].split("/")), cells
+    assert int(cells["gripper_deg_at_rise"]) > 0, cells
+    assert float(cells["tool_rose_cm"]) > 2.0, cells
+    assert abs(float(cells["cube_rose_cm"]) - float(cells["tool_rose_cm"])) < 1.0, cells
     # One reopening after a close (the release), no retry.
     counts = _trace("--count-reopens", str(rollouts))
     assert counts.returncode == 0, counts.stderr

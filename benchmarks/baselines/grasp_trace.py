@@ -13,6 +13,12 @@ to the first cube before that and when it closed, how far the cube had moved by 
 the widest the command opened again afterwards (a retry opens it past ``--open``). The
 folders are data: only their parquet files and ``so101_sim_recording.json`` are read.
 
+``--every-close`` replays the same way and gives one row per close of the command, on every
+cube (tidy has three): which cube the pads were nearest, how many steps later the tool had
+risen 1 cm, each pad's distance to that cube and the gripper joint's angle at that moment (a
+cube between the jaws stops them: both pads touching, the joint open by the cube's width), and
+how far the tool and the cube rose before the next opening (a held cube rises with the tool).
+
 ``--count-reopens`` reads the ``action`` column only (no replay) of any folder, rollouts or a
 ``so101-sim record`` dataset, and counts per episode how often the gripper opened again after
 a close: 1 is a plain pick-and-place (the release), each retry of the recovering expert
@@ -26,6 +32,7 @@ import sys
 from collections import Counter
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import pandas as pd
 
@@ -98,6 +105,52 @@ def trace(task: str, ep: pd.DataFrame, open_at: float, closed_at: float) -> dict
     return row
 
 
+def _pads_cm(env: SO101Env, k: int) -> tuple[float, float]:
+    m, d, ids = env.model, env.data, env.ids
+    return tuple(round(100 * mujoco.mj_geomDistance(m, d, ids.cube_geoms[k], pad, 0.05, None), 1)
+                 for pad in (ids.fixed_pad, ids.moving_pad))
+
+
+def every_close(task: str, ep: pd.DataFrame, open_at: float, closed_at: float) -> list[dict]:
+    """Replay one episode; one row per close of the gripper command (see the module doc)."""
+    seed = int(ep["episode_seed"].iloc[0])
+    actions = np.stack(ep["act"].to_numpy()).astype(np.float32)
+    env = SO101Env(task, obs_type="state")
+    env.reset(seed=seed)
+    n_cubes = getattr(env.task, "n_cubes", 1)
+    rows: list[dict] = []
+    row: dict | None = None
+    opened = False
+    for t, a in enumerate(actions):
+        env.step(a)
+        tool_z = float(env.data.site_xpos[env.ids.tcp_site][2])
+        if a[GRIPPER] < closed_at and opened and row is None:
+            clearance = [env.pad_clearance(k) for k in range(n_cubes)]
+            k = int(np.argmin(clearance))
+            row = {"seed": seed, "close": t, "cube": k,
+                   "at_close_cm": round(100 * clearance[k], 1), "_t0": tool_z, "_top": tool_z,
+                   "_c0": float(env.cube_pos(k)[2]), "_ctop": float(env.cube_pos(k)[2])}
+        elif a[GRIPPER] > open_at:
+            opened = True
+            if row is not None:
+                rows.append(row)
+                row = None
+        if row is not None:
+            if "rise_1cm_after" not in row and tool_z - row["_t0"] > 0.01:
+                row["rise_1cm_after"] = t - row["close"]
+                row["pads_at_rise_cm"] = "/".join(map(str, _pads_cm(env, row["cube"])))
+                row["gripper_deg_at_rise"] = round(float(np.degrees(env.data.qpos[GRIPPER])))
+            row["_top"] = max(row["_top"], tool_z)
+            row["_ctop"] = max(row["_ctop"], float(env.cube_pos(row["cube"])[2]))
+    env.close()
+    if row is not None:
+        rows.append(row)
+    for r in rows:
+        r["tool_rose_cm"] = round(100 * (r.pop("_top") - r.pop("_t0")), 1)
+        r["cube_rose_cm"] = round(100 * (r.pop("_ctop") - r.pop("_c0")), 1)
+    return rows
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folders", nargs="+", type=Path)
@@ -106,8 +159,20 @@ def main(argv: list[str] | None = None) -> None:
                     help="gripper command counted as closed")
     ap.add_argument("--count-reopens", action="store_true",
                     help="per folder, episodes by how often the gripper reopened after a close")
+    ap.add_argument("--every-close", action="store_true",
+                    help="one row per close on any cube: did the cube rise with the tool")
     args = ap.parse_args(argv)
     loaded = [episodes(folder) for folder in args.folders]  # every folder checked first
+    if args.every_close:
+        cols = ("seed", "close", "cube", "at_close_cm", "rise_1cm_after", "pads_at_rise_cm",
+                "gripper_deg_at_rise", "tool_rose_cm", "cube_rose_cm")
+        print("| " + " | ".join(cols) + " |")
+        print("|" + "---|" * len(cols))
+        for task, eps in loaded:
+            for ep in eps:
+                for row in every_close(task, ep, args.open, args.closed):
+                    print("| " + " | ".join(str(row.get(c, "")) for c in cols) + " |")
+        return
     if args.count_reopens:
         for folder, (_, eps) in zip(args.folders, loaded, strict=True):
             counts = Counter(reopens(np.stack(ep["action"].to_numpy())[:, GRIPPER], args.open,
