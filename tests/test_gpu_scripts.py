@@ -133,8 +133,8 @@ def test_with_pyav_present_the_stand_in_steps_aside() -> None:
 
 def test_two_calls_join_the_halves_and_send_back_fp16_policies(packed, tmp_path: Path) -> None:
     """finetune_from_stash.sh (call 2) joins the half call 1 stashed with the half it carries,
-    trains from the shipped suite weights, and leaves the last and the MID policy in $OUT as
-    fp16 tars (here on the CPU, 2 steps)."""
+    trains from the shipped suite weights and, beside it, a second run from scratch, and leaves
+    each last policy and the first run's MID policy in $OUT as fp16 tars (on the CPU, 2 steps)."""
     src, one = packed
     stash, half, out = tmp_path / "stash", tmp_path / "B", tmp_path / "out"
     camera = sorted((one / "videos").iterdir())[0].name
@@ -143,14 +143,15 @@ def test_two_calls_join_the_halves_and_send_back_fp16_policies(packed, tmp_path:
     env = {**os.environ, "STASH": str(stash), "OUT": str(out), "RUNS": str(tmp_path / "runs"),
            "DEVICE": "cpu", "PY": sys.executable}
     done = subprocess.run(["bash", str(GPU / "finetune_from_stash.sh"), str(half), "300",
-                           "t:cpu_ft:4:2", "2"], env=env, capture_output=True, text=True,
-                          timeout=300)
+                           "t:cpu_ft:4:2", "2", "s:cpu:4:2::scratch"], env=env,
+                          capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     joined = stash / "data"
     assert {p.name for p in (joined / "videos").iterdir()} == \
         {p.name for p in (src / "videos").iterdir()}
     assert (joined / "meta" / "info.json").is_file()
-    for name in ("t", "mid2"):
+    assert "=== s: preset cpu, batch 4, 2 steps" in done.stdout and "from scratch" in done.stdout
+    for name in ("t", "mid2", "s"):
         parts = sorted(out.glob(f"{name}.tar.*"))
         assert parts, done.stdout[-2000:]
         unpacked = tmp_path / f"un_{name}"

@@ -5,17 +5,25 @@
 #   run(carry=[".gpuwork/A", ".whl"]):
 #     mkdir -p /root/stash && cp -r .gpuwork/A /root/stash/A && cp -r .whl /root/stash/whl
 # Call 2 carries the other half and runs this script, which joins the halves and hands over to
-# finetune_on_gpu.sh (one NAME; fp16 policy back as NAME.tar.*), plus the policy of
-# checkpoint MID_STEP as mid.tar.* for a second point on the curve:
+# finetune_on_gpu.sh (one or more SPECs, NAME:PRESET:BATCH:STEPS[:DATA[:INIT]] as there, all
+# at once; fp16 policies back as NAME.tar.*), plus the policy of the first run's checkpoint
+# MID_STEP (a number among the arguments) as midMID_STEP.tar.* for a second point on its curve:
 #   run(carry=[".gpuwork/B"]):
-#     bash benchmarks/gpu/finetune_from_stash.sh .gpuwork/B TRAIN_S NAME:PRESET:BATCH:STEPS [MID]
+#     bash benchmarks/gpu/finetune_from_stash.sh .gpuwork/B TRAIN_S SPEC [SPEC ...] [MID_STEP]
+# Anything else a run needs (another dataset, an init checkpoint) can be stashed by an earlier
+# call too and named by its /root/stash path in the SPEC.
 # A later call on the same warm machine can go on from the last checkpoint with --resume: the
 # frame cache stays in /dev/shm, the joined dataset in /root/stash/data.
 set -uo pipefail
-half=${1:?usage: finetune_from_stash.sh HALF_B TRAIN_S NAME:PRESET:BATCH:STEPS [MID_STEP]}
+half=${1:?usage: finetune_from_stash.sh HALF_B TRAIN_S SPEC [SPEC ...] [MID_STEP]}
 train_s=${2:?}
-spec=${3:?}
-mid=${4:-}
+shift 2
+specs=()
+mid=
+for arg in "$@"; do
+  if [[ $arg =~ ^[0-9]+$ ]]; then mid=$arg; else specs+=("$arg"); fi
+done
+[ ${#specs[@]} -gt 0 ] || { echo "no NAME:PRESET:BATCH:STEPS given"; exit 2; }
 t0=$SECONDS
 here=$(cd "$(dirname "$0")" && pwd)
 repo=$(cd "$here/../.." && pwd)
@@ -34,8 +42,8 @@ if [ -z "${RUNS:-}" ] && [ -n "$free_kb" ] && [ "$free_kb" -gt 40000000 ]; then
   runs=/dev/shm/ft_runs
 fi
 echo "joined $(du -sh "$data" | cut -f1) in $data; runs in $runs; $((SECONDS - t0)) s"
-RUNS=$runs bash "$here/finetune_on_gpu.sh" "$data" "$OUT" "$train_s" "$spec"
-name=${spec%%:*}
+RUNS=$runs bash "$here/finetune_on_gpu.sh" "$data" "$OUT" "$train_s" "${specs[@]}"
+name=${specs[0]%%:*}
 ck=$runs/$name/checkpoints/step_$(printf %07d "${mid:-0}")
 if [ -n "$mid" ] && [ -d "$ck" ]; then
   pack=$runs/pack_mid && rm -rf "$pack" && mkdir -p "$pack" && cp "$ck"/pretrained_model/* "$pack"/

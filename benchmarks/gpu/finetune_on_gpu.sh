@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Fine-tune the shipped suite weights on one task's demos on a lent GPU, in one short call:
-#   bash benchmarks/gpu/finetune_on_gpu.sh DATASET OUT TRAIN_S NAME:PRESET:BATCH:STEPS[:DATA] ...
-# Each NAME runs `so101-sim train --init-from policy/suite_diffusion` with its preset, batch and
-# steps, on its own dataset DATA when given (else DATASET), all at once on the one GPU (a step
+#   bash benchmarks/gpu/finetune_on_gpu.sh DATASET OUT TRAIN_S NAME:PRESET:BATCH:STEPS[:DATA[:INIT]] ...
+# Each NAME runs `so101-sim train --init-from INIT` (default policy/suite_diffusion; a path
+# relative to the repo or absolute; `scratch` trains from random weights) with its preset, batch
+# and steps, on its own dataset DATA when given (else DATASET), all at once on the one GPU (a step
 # of these presets is launch-bound, so the runs share it), stopped by SIGTERM after TRAIN_S
 # seconds if not done (the trainer checkpoints on SIGTERM).
 # Each run's last policy comes back as NAME.tar (weights in fp16, as `so101-sim export` ships
@@ -39,11 +40,15 @@ torch.cuda.is_available(), "lerobot", lerobot.__version__, "diffusers", diffuser
 
 names=()
 for spec in "$@"; do
-  IFS=: read -r name preset batch steps own <<< "$spec"
+  IFS=: read -r name preset batch steps own init <<< "$spec"
   names+=("$name")
-  echo "=== $name: preset $preset, batch $batch, $steps steps, ${own:-$data}, at most $train_s s"
+  init=${init:-policy/suite_diffusion}
+  case $init in scratch) from=() ;; /*) from=(--init-from "$init") ;;
+    *) from=(--init-from "$repo/$init") ;; esac
+  echo "=== $name: preset $preset, batch $batch, $steps steps, ${own:-$data}, from $init," \
+    "at most $train_s s"
   timeout -s TERM "$train_s" "$py" "$here/train_without_pyav.py" --preset "$preset" \
-    --dataset "${own:-$data}" --out "$runs/$name" --init-from "$repo/policy/suite_diffusion" \
+    --dataset "${own:-$data}" --out "$runs/$name" "${from[@]}" \
     --batch-size "$batch" --steps "$steps" --device "$dev" > "$out/$name.log" 2>&1 &
 done
 wait

