@@ -151,6 +151,7 @@ def test_two_calls_join_the_halves_and_send_back_fp16_policies(packed, tmp_path:
         {p.name for p in (src / "videos").iterdir()}
     assert (joined / "meta" / "info.json").is_file()
     assert "=== s: preset cpu, batch 4, 2 steps" in done.stdout and "from scratch" in done.stdout
+    assert "a call returns about two" in done.stdout  # three policies: one will not come back
     for name in ("t", "mid2", "s"):
         parts = sorted(out.glob(f"{name}.tar.*"))
         assert parts, done.stdout[-2000:]

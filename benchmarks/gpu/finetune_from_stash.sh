@@ -42,6 +42,9 @@ if [ -z "${RUNS:-}" ] && [ -n "$free_kb" ] && [ "$free_kb" -gt 40000000 ]; then
   runs=/dev/shm/ft_runs
 fi
 echo "joined $(du -sh "$data" | cut -f1) in $data; runs in $runs; $((SECONDS - t0)) s"
+[ -z "$mid" ] || [ ${#specs[@]} -lt 2 ] || echo "note: MID_STEP adds a policy to the" \
+  "${#specs[@]} runs' and a call returns about two 28.6 MB policies: fetch what is left out" \
+  "from $runs/*.tar in a next call on the warm machine"
 RUNS=$runs bash "$here/finetune_on_gpu.sh" "$data" "$OUT" "$train_s" "${specs[@]}"
 name=${specs[0]%%:*}
 ck=$runs/$name/checkpoints/step_$(printf %07d "${mid:-0}")

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Fine-tune the shipped suite weights on one task's demos on a lent GPU, in one short call:
+# Train on a lent GPU in one short call, by default fine-tuning the shipped suite weights:
 #   bash benchmarks/gpu/finetune_on_gpu.sh DATASET OUT TRAIN_S NAME:PRESET:BATCH:STEPS[:DATA[:INIT]] ...
 # Each NAME runs `so101-sim train --init-from INIT` (default policy/suite_diffusion; a path
 # relative to the repo or absolute; `scratch` trains from random weights) with its preset, batch
@@ -38,6 +38,9 @@ echo "setup: $((SECONDS - t0)) s"
 "$py" -c 'import torch, lerobot, diffusers; print("torch", torch.__version__, "cuda",
 torch.cuda.is_available(), "lerobot", lerobot.__version__, "diffusers", diffusers.__version__)'
 
+# what comes back from a call is capped in total: two 28.6 MB policies fit, a third was left out
+[ $# -le 2 ] || echo "note: $# policies will be packed; a call returns about two, so fetch the" \
+  "rest in a next call on the warm machine (split -b 15000000 -d $runs/NAME.tar \$OUT/NAME.tar.)"
 names=()
 for spec in "$@"; do
   IFS=: read -r name preset batch steps own init <<< "$spec"
