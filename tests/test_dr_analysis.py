@@ -61,6 +61,33 @@ def test_factors_read_back_the_values_the_task_file_allows():
     assert list(by_place.factors("pick_place", seeds[:2])) == ["bearing (deg)"]
 
 
+def test_bearing_of_each_cube_is_that_cubes_start_and_a_missing_cube_is_refused():
+    import math
+
+    import pytest
+
+    from so101_sim.sim import PickPlaceEnv
+    from so101_sim.tasks.layouts import PAN_AXIS_XY
+
+    by_place = _by_place()
+    seeds = [100000, 100001, 100002]
+    env = PickPlaceEnv(task="tidy", obs_type="state")
+    try:
+        for k in range(3):
+            want = []
+            for s in seeds:
+                env.reset(seed=s)
+                x, y = env.cube_pos(k)[:2]
+                want.append(math.degrees(math.atan2(y - PAN_AXIS_XY[1], x - PAN_AXIS_XY[0])))
+            np.testing.assert_allclose(by_place.bearings("tidy", seeds, k), want)
+    finally:
+        env.close()
+    # three cubes start in three places: the bins of one cube are not another's
+    assert not np.allclose(by_place.bearings("tidy", seeds, 0), by_place.bearings("tidy", seeds, 2))
+    with pytest.raises(SystemExit, match="--cube 1: task 'pick_place' has 1 cube"):
+        by_place.bearings("pick_place", seeds, 1)
+
+
 def test_failure_auc_is_one_half_without_association_and_one_when_failures_sit_above():
     by_place = _by_place()
     rng = np.random.default_rng(0)

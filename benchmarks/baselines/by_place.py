@@ -9,8 +9,9 @@ Each argument is an ``eval_info.json`` (or a folder holding one) with per-episod
 must be one task on the same seeds. Each seed is reset once (state only, no rendering) to read
 the cube's start, and the seeds are cut into ``--bins`` equal-count bins of bearing around the
 shoulder_pan axis (0 deg = straight ahead, negative = the robot's right, the side camera's
-side). The table gives success per bin for each file (Wilson 95% interval for the last) and the
-last file's failure modes. ``--demos DATASET`` adds how many of a recorded dataset's episodes
+side; ``--cube K`` bins by cube K's start, for tidy's and stack's later cubes). The table
+gives success per bin for each file (Wilson 95% interval for the last) and the last file's
+failure modes. ``--demos DATASET`` adds how many of a recorded dataset's episodes
 start in each bin, to tell thin coverage from a hard place.
 
 ``--factors`` reads, after each reset, every factor a ``[randomize]`` task drew (light, colours,
@@ -53,9 +54,9 @@ def _load(path: Path) -> tuple[str, dict[int, tuple[bool, str | None]]]:
     return task, episodes
 
 
-def bearings(task: str, seeds: list[int]) -> np.ndarray:
-    """The cube's start bearing (degrees) around the pan axis, one reset per seed."""
-    return factors(task, seeds)["bearing (deg)"]
+def bearings(task: str, seeds: list[int], cube: int = 0) -> np.ndarray:
+    """Cube `cube`'s start bearing (degrees) around the pan axis, one reset per seed."""
+    return factors(task, seeds, cube)["bearing (deg)"]
 
 
 def _angle_deg(q: np.ndarray, q0: np.ndarray) -> float:
@@ -63,11 +64,14 @@ def _angle_deg(q: np.ndarray, q0: np.ndarray) -> float:
     return math.degrees(2 * math.acos(min(1.0, abs(float(np.dot(q, q0))))))
 
 
-def factors(task: str, seeds: list[int]) -> dict[str, np.ndarray]:
+def factors(task: str, seeds: list[int], which: int = 0) -> dict[str, np.ndarray]:
     """Each randomized factor's value per seed, read from the env's model after one reset
-    (state only). A task without ``[randomize]`` gives the bearing alone."""
+    (state only). A task without ``[randomize]`` gives the bearing (of cube `which`) alone."""
     env = PickPlaceEnv(task=task, obs_type="state")
     try:
+        if not 0 <= which < env.task.n_cubes:
+            sys.exit(f"--cube {which}: task {task!r} has {env.task.n_cubes} cube(s), numbered "
+                     f"0 to {env.task.n_cubes - 1} (0 is the red one); pass one of those")
         m = env.model
         key, table, cube = m.light("key").id, m.geom("table").id, env.ids.cube_geom
         cams = [m.camera(c).id for c in ("front", "side")]
@@ -83,7 +87,7 @@ def factors(task: str, seeds: list[int]) -> dict[str, np.ndarray]:
         rows: list[dict[str, float]] = []
         for seed in seeds:
             env.reset(seed=int(seed))
-            x, y = env.cube_pos()[:2]
+            x, y = env.cube_pos(which)[:2]
             row = {"bearing (deg)": math.degrees(math.atan2(y - PAN_AXIS_XY[1],
                                                             x - PAN_AXIS_XY[0]))}
             if env.task.randomize is not None:
@@ -179,6 +183,8 @@ def main(argv: list[str] | None = None) -> int:
                     "factor of the scene instead of by bearing bins")
     ap.add_argument("--task", help="the task file the evaluations ran (a .toml path), for a "
                     "task outside envs/; its name must be the one the files give")
+    ap.add_argument("--cube", type=int, default=0, help="bin by this cube's start (tidy and "
+                    "stack have several; 0, the red one, by default)")
     ap.add_argument("--demos", type=Path, help="a recorded dataset of the same task: its "
                     "episodes' start bearings per bin")
     args = ap.parse_args(argv)
@@ -201,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
         factor_table(loaded, [p.stem if p.is_file() else p.name for p in args.evals], seeds,
                      task)
         return 0
-    ang = bearings(task, seeds)
+    ang = bearings(task, seeds, args.cube)
     edges = np.quantile(ang, np.linspace(0, 1, args.bins + 1))
 
     def bin_of(values: np.ndarray) -> np.ndarray:
@@ -212,14 +218,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.demos is not None:
         from so101_sim.dataset import stored_seeds
 
-        d_ang = bearings(task, sorted(stored_seeds(args.demos)))
+        d_ang = bearings(task, sorted(stored_seeds(args.demos)), args.cube)
         demo_bins = np.bincount(bin_of(d_ang), minlength=args.bins)
 
     names = [p.stem if p.is_file() else p.name for p in args.evals]
     head = ["bearing (deg)", "n", *names, "95% CI (last)", "failures (last)"]
     if demo_bins is not None:
         head.insert(2, "demos")
-    print(f"task {task}, {len(seeds)} seeds")
+    print(f"task {task}, {len(seeds)} seeds, binned by cube {args.cube}'s start")
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     last = loaded[-1][1]
