@@ -169,8 +169,8 @@ def test_training_reads_the_rollout_dataset(runs):
     import torch
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+    from so101_sim.train.demos import load_demos
     from so101_sim.train.presets import load_preset
-    from so101_sim.train.trainer import load_demos
 
     root = runs["base"] / "ds"
     ds = LeRobotDataset(DEFAULT_REPO_ID, root=root, delta_timestamps={

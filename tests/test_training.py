@@ -15,9 +15,10 @@ import torch
 from so101_sim.dataset import DEFAULT_REPO_ID
 from so101_sim.record import record
 from so101_sim.train import trainer
+from so101_sim.train.demos import gather_batch, load_demos
 from so101_sim.train.presets import PresetError, load_preset, make_config, policy_features
 from so101_sim.train.state import list_checkpoints
-from so101_sim.train.trainer import TrainError, gather_batch, load_demos, train
+from so101_sim.train.trainer import TrainError, train
 
 SMALL = (48, 64)
 FPS = 30
@@ -468,3 +469,53 @@ def test_act_trains_from_its_preset_and_evaluates(dataset: Path, tmp_path: Path)
                       image_size=SMALL, out_dir=tmp_path / "eval", progress=False, report=False,
                       log=lambda _: None)
     assert result["per_episode"][0]["steps"] == 8
+
+
+def test_close_windows_mark_each_close_of_its_own_episode() -> None:
+    from so101_sim.train.demos import CloseWeighting, close_windows
+
+    w = CloseWeighting(3.0, before=2, after=1)
+    # episode 0 (frames 0-9): starts shut (not a close), opens, shuts at 5; reopens, shuts at 9.
+    # episode 1 (frames 10-15): opens, shuts at 11; a dip to 20 is neither open nor closed.
+    grip = np.array([0, 0, 45, 45, 45, 0, 0, 45, 45, 5, 45, 0, 0, 20, 0, 0], dtype=np.float32)
+    ep_from = np.array([0] * 10 + [10] * 6)
+    ep_to = np.array([10] * 10 + [16] * 6)
+    mask = close_windows(grip, ep_from, ep_to, w)
+    want = np.zeros(16, dtype=bool)
+    want[3:7] = True    # close at 5: 2 before, 1 after
+    want[7:10] = True   # close at 9: the window stops at its episode's end
+    want[10:13] = True  # close at 11: the window starts at its episode's start
+    np.testing.assert_array_equal(mask, want)
+
+
+def test_oversample_closes_weights_the_draws_and_is_kept_on_resume(
+        dataset: Path, tiny: Path, tmp_path: Path) -> None:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from so101_sim.train.demos import CloseWeighting, close_windows, sample_weights
+
+    with pytest.raises(TrainError, match="expected a factor >= 1"):
+        CloseWeighting(0.5)
+    ds = LeRobotDataset("local/ds", root=dataset)
+    demos = load_demos(ds, load_preset(str(tiny)), None)
+    names = ds.meta.features["action"]["names"]
+    assert sample_weights(demos, names, None) is None
+    probs = sample_weights(demos, names, CloseWeighting(3.0))
+    near = close_windows(demos.action[:, names.index("gripper.pos")], demos.episode_from,
+                         demos.episode_to, CloseWeighting(3.0))[demos.starts]
+    assert 0 < near.mean() < 0.6  # each demo grasps once: a window, not the whole episode
+    assert probs.sum() == pytest.approx(1.0)
+    np.testing.assert_allclose(probs[near] / probs[~near].max(), 3.0)
+    with pytest.raises(TrainError, match="needs one gripper action"):
+        sample_weights(demos, [n.replace("gripper", "jaw") for n in names], CloseWeighting(3.0))
+
+    fixed = {"progress": False, "threads": 1}
+    run = train(dataset, tmp_path / "w", preset_name=str(tiny), steps=2, stop_at=1,
+                oversample_closes=3.0, **fixed)
+    info = json.loads((run.pretrained_dir / "so101_sim_train.json").read_text())
+    assert info["oversample_closes"]["factor"] == 3.0
+    with pytest.raises(TrainError, match="with the same value"):
+        train(dataset, tmp_path / "w", preset_name=str(tiny), steps=2, resume=True, **fixed)
+    done = train(dataset, tmp_path / "w", preset_name=str(tiny), steps=2, resume=True,
+                 oversample_closes=3.0, **fixed)
+    assert done.step == 2

@@ -28,7 +28,7 @@ import pyarrow.parquet as pq
 
 from so101_sim.utils.image_pipeline import resize_frames
 
-# what `so101_sim.train.trainer.load_demos` and LeRobotDataset's own indexing need
+# what `so101_sim.train.demos.load_demos` and LeRobotDataset's own indexing need
 TRAINER_READS = frozenset({"observation.state", "action", "timestamp", "frame_index",
                            "episode_index", "index", "task_index"})
 

@@ -63,7 +63,8 @@ def cmd_train(args: argparse.Namespace) -> int:
                   batch_size=args.batch_size, resume=args.resume, precision=args.precision,
                   device=args.device, threads=args.threads, stop_at=args.stop_at,
                   init_from=Path(args.init_from) if args.init_from else None,
-                  keep_frame_cache=args.keep_frame_cache)
+                  keep_frame_cache=args.keep_frame_cache,
+                  oversample_closes=args.oversample_closes)
     except (TrainError, PresetError) as e:
         print(f"so101-sim train: {e}", file=sys.stderr)
         return 2

@@ -149,6 +149,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="start a new run from this checkpoint's weights (fine-tuning, e.g. "
                          "policy/suite_diffusion on more demos); same preset architecture; "
                          "the optimiser, schedule and normalisation start fresh")
+    tr.add_argument("--oversample-closes", type=float, default=None, metavar="FACTOR",
+                    help="draw the frames around each close of the gripper (1.5 s before to "
+                         "0.5 s after) FACTOR times as often as the rest, for policies whose "
+                         "misses are imprecise grasps (default: every frame alike)")
     tr.add_argument("--threads", type=int, default=None,
                     help="torch CPU threads, fixed and bitwise repeatable (default on CPU: "
                          "all cores when idle; with another job busy, the batch in one part "

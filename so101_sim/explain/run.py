@@ -23,8 +23,8 @@ from so101_sim.explain.errors import ExplainError
 from so101_sim.explain.hooks import tolist
 from so101_sim.explain.trace import STATE_KEY, trace
 from so101_sim.train.checkpoint import checkpoint_name, load_checkpoint, read_train_info
+from so101_sim.train.demos import normalization_stats
 from so101_sim.train.presets import load_preset, make_config, policy_features
-from so101_sim.train.trainer import normalization_stats
 from so101_sim.utils.atomic import write_json_atomic, write_text_atomic
 from so101_sim.utils.locks import hold_folder, lock_scope
 from so101_sim.utils.trust import UntrustedCheckpointError

@@ -26,7 +26,6 @@ import signal
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -39,8 +38,15 @@ from tqdm import tqdm
 from so101_sim.dataset.reader import NotADatasetError, open_lerobot_dataset
 from so101_sim.train.augment import FrameAugmenter
 from so101_sim.train.checkpoint import init_weights_from
-from so101_sim.train.frame_cache import drop_cache, load_frames
-from so101_sim.train.presets import Preset, load_preset, make_config, policy_features
+from so101_sim.train.demos import (
+    CloseWeighting,
+    gather_batch,
+    load_demos,
+    normalization_stats,
+    sample_weights,
+)
+from so101_sim.train.frame_cache import drop_cache
+from so101_sim.train.presets import load_preset, make_config, policy_features
 from so101_sim.train.state import (
     TrainError,
     architecture,
@@ -56,87 +62,9 @@ from so101_sim.train.threads import AdaptiveThreads, BatchParts
 from so101_sim.utils.devices import resolve_device, resolve_precision
 from so101_sim.utils.locks import hold_folder, lock_scope
 
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 #: Training precision: fp32, or bf16 autocast (AMX/AVX512-BF16 CPUs: 1.45x faster per step;
 #: slower on an H200); weights, optimiser and EMA stay fp32. "auto": see devices.py.
 PRECISIONS = ("auto", "fp32", "bf16")
-
-
-# ----------------------------------------------------------------------------- data
-
-
-@dataclass
-class DemoArrays:
-    """Everything training reads, in memory: states, actions, frames and episode bounds."""
-
-    state: np.ndarray                 # [N, 6] float32
-    action: np.ndarray                # [N, 6] float32
-    frames: dict[str, np.ndarray]     # camera key -> uint8 [N, 3, h, w]
-    episode_from: np.ndarray          # [N] first index of each frame's episode
-    episode_to: np.ndarray            # [N] one past its last index
-    starts: np.ndarray                # frame indices a sample may be centred on
-
-
-def load_demos(dataset, preset: Preset, cache_dir: Path | None) -> DemoArrays:
-    """Read a LeRobotDataset into `DemoArrays` for `preset` (frames resized to its image size)."""
-    hf = dataset.hf_dataset.with_format("numpy")
-    state = np.asarray(hf["observation.state"], dtype=np.float32)
-    action = np.asarray(hf["action"], dtype=np.float32)
-    index = np.asarray(hf["index"])
-    if not np.array_equal(index, np.arange(len(index))):
-        raise TrainError(f"dataset {dataset.meta.root}: frame indices are not 0..N-1 in order; "
-                         "train on a dataset written by `so101-sim record` or lerobot")
-    ep_from, ep_to = np.empty((2, len(index)), dtype=np.int64)
-    starts = []
-    drop = int(preset.policy.get("drop_n_last_frames", 0))  # ACT samples every frame
-    for row in dataset.meta.episodes:
-        lo, hi = int(row["dataset_from_index"]), int(row["dataset_to_index"])
-        ep_from[lo:hi], ep_to[lo:hi] = lo, hi
-        starts.append(np.arange(lo, max(lo + 1, hi - drop)))
-    frames = load_frames(dataset, preset.image_size, cache_dir)
-    return DemoArrays(state, action, frames, ep_from, ep_to, np.concatenate(starts))
-
-
-def gather_batch(demos: DemoArrays, idx: np.ndarray, obs_offsets: list[int] | None,
-                 act_offsets: list[int]) -> dict:
-    """A training batch centred on frames `idx`, padded at episode edges as lerobot does.
-
-    The offsets are the config's `observation_delta_indices` and `action_delta_indices`
-    (Diffusion: observations t-n_obs+1..t, actions from t-n_obs+1 on; ACT: None, the frame t
-    alone with no time axis, and actions t..t+chunk-1). Indices outside the episode repeat its
-    edge frame and are flagged in `action_is_pad`.
-    """
-    lo, hi = demos.episode_from[idx, None], demos.episode_to[idx, None] - 1
-    obs_i = np.clip(idx[:, None] + np.asarray(obs_offsets or [0])[None], lo, hi)
-    if obs_offsets is None:
-        obs_i = obs_i[:, 0]  # one frame, no time axis
-    act_raw = idx[:, None] + np.asarray(act_offsets)[None]
-    act_i = np.clip(act_raw, lo, hi)
-    batch: dict[str, Any] = {
-        "observation.state": torch.from_numpy(demos.state[obs_i]),
-        "action": torch.from_numpy(demos.action[act_i]),
-        "action_is_pad": torch.from_numpy((act_raw < lo) | (act_raw > hi)),
-    }
-    for key, arr in demos.frames.items():
-        batch[key] = torch.from_numpy(arr[obs_i]).float().div_(255.0)
-    return batch
-
-
-def normalization_stats(dataset, preset: Preset) -> dict[str, dict[str, torch.Tensor]]:
-    """State/action stats from the dataset; pixel mean/std per the preset."""
-    stats: dict[str, dict[str, torch.Tensor]] = {}
-    for key in ("observation.state", "action"):
-        stats[key] = {k: torch.as_tensor(np.asarray(v), dtype=torch.float32)
-                      for k, v in dataset.meta.stats[key].items()}
-    for key in dataset.meta.video_keys:
-        if preset.image_normalize == "imagenet":
-            mean, std = torch.tensor(IMAGENET_MEAN), torch.tensor(IMAGENET_STD)
-        else:
-            mean = torch.as_tensor(np.asarray(dataset.meta.stats[key]["mean"])).reshape(3)
-            std = torch.as_tensor(np.asarray(dataset.meta.stats[key]["std"])).reshape(3)
-        stats[key] = {"mean": mean.reshape(3, 1, 1).float(), "std": std.reshape(3, 1, 1).float()}
-    return stats
 
 
 # ----------------------------------------------------------------------------- run
@@ -158,7 +86,8 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
           progress: bool = True, log_every: int | None = None,
           precision: str = "fp32", device: str = "cpu",
           threads: int | None = None, stop_at: int | None = None,
-          init_from: Path | None = None, keep_frame_cache: bool = False) -> TrainResult:
+          init_from: Path | None = None, keep_frame_cache: bool = False,
+          oversample_closes: float | None = None) -> TrainResult:
     """Train `preset_name` on the dataset at `dataset_dir`; see the module docstring.
 
     `device` is auto|cpu|cuda|mps (`devices.resolve_device`); `precision` fp32|bf16|auto.
@@ -169,6 +98,8 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     short run is the prefix of the long one (`resume=True` later continues it exactly).
     `init_from`: a checkpoint folder whose weights a new run starts from (fine-tuning).
     `keep_frame_cache`: keep `frame_cache/` when the run reaches `steps` (default: delete it).
+    `oversample_closes`: draw frames near each close of the gripper this many times as often
+    (`demos.CloseWeighting`); None draws every frame alike. A resumed run keeps its own.
     """
     from diffusers.optimization import get_scheduler
     from diffusers.training_utils import EMAModel
@@ -192,6 +123,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
         raise TrainError(f"--stop-at {stop_at} is outside 1..--steps ({steps}); give the step "
                          "to pause at, at most the run's total steps")
     end = steps if stop_at is None else stop_at
+    weighting = None if oversample_closes is None else CloseWeighting(float(oversample_closes))
     out = Path(out)
     existed = out.exists()
     hold_folder(out, "the training run",  # one writer: a second run is refused here
@@ -250,6 +182,10 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             raise TrainError(f"{out} was trained with preset {state['preset']!r} on "
                              f"{state['dataset']}; resume it with the same --preset and --dataset")
         check_same_architecture(state, preset, out)
+        if state.get("oversample_closes") != oversample_closes:
+            raise TrainError(f"{out} was trained with --oversample-closes "
+                             f"{state.get('oversample_closes')}, not {oversample_closes}; "
+                             "resume it with the same value (leave the flag out for None)")
         try:
             policy.load_state_dict(state["model"])
         except RuntimeError as e:
@@ -282,6 +218,11 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     start_step = step
     out.mkdir(parents=True, exist_ok=True)
     demos = load_demos(dataset, preset, out / "frame_cache")
+    probs = sample_weights(demos, dataset.meta.features["action"]["names"], weighting)
+    if probs is not None:
+        near = probs > probs.min()
+        print(f"so101-sim train: {near.mean():.0%} of the frames are near a gripper close; drawn "
+              f"{weighting.factor:g}x as often, they are {probs[near].sum():.0%} of each batch")
     info = {"preset": preset.name, "preset_file": str(preset.path), "dataset": str(dataset_dir),
             "dataset_episodes": dataset.meta.total_episodes,
             "dataset_frames": dataset.meta.total_frames,
@@ -290,7 +231,8 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             "policy_image_size": list(preset.image_size),
             "image_pipeline": "so101_sim.utils.image_pipeline.resize_frames (bilinear, antialias)",
             "policy_type": cfg.type, "weights": "EMA", "init_from": started_from,
-            "augment": preset.augment, "batch_size": batch_size, "precision": precision,
+            "augment": preset.augment, "oversample_closes": weighting and asdict(weighting),
+            "batch_size": batch_size, "precision": precision,
             "precision_history": precision_history, "total_steps": steps, "device": device,
             "train_settings": asdict(ts)}
 
@@ -316,7 +258,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                            else {}),
                         "step": at_step, "steps": steps, "wall_s": wall,
                         "preset": preset.name, "precision_history": precision_history,
-                        "init_from": started_from,
+                        "init_from": started_from, "oversample_closes": oversample_closes,
                         "preset_arch": architecture(preset),
                         "dataset": str(Path(dataset_dir).resolve())}, ck / "training_state.tmp")
         except BaseException:
@@ -344,7 +286,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     try:
         while step < end and stop["signal"] is None:
             t_step = time.perf_counter()
-            idx = rng.choice(demos.starts, size=batch_size)
+            idx = rng.choice(demos.starts, size=batch_size, p=probs)
             batch = pre(augment(gather_batch(demos, idx, obs_offsets, act_offsets)))
             optimizer.zero_grad(set_to_none=True)
             loss_val = run_parts(batch_loss, batch, tuner.parts if tuner else 1)
