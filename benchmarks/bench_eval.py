@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/bench_eval.py CHECKPOINT [--episodes 50] [--n-envs 16]
     .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --compare-lerobot
     .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --paths --bf16 --episodes 200
+    .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --plain-kernels --episodes 200
     .venv/bin/python benchmarks/bench_eval.py --quick          # tiny untrained checkpoint
 
 (a) `so101-sim eval` on N episodes with K env workers: wall time and the physics / render /
@@ -19,6 +20,10 @@ arithmetic; fp32 (the default) is both tools' default.
 (c) with --paths, run (a) against --faithful on the same seeds, side by side: wall time of
 each, the ratio, and `so101-sim compare` on the pair (both rates, the discordant seeds, exact
 McNemar p). (d) with --bf16, run (a) against the same with `--precision bf16`, likewise.
+(e) with --plain-kernels, run (a) against the same with the harness's two exact speed-ups
+undone (torch's own max-pooling kernel instead of harness.policies.pooling's channels-last
+one, glibc's default heap instead of utils.heap's), likewise, and count the episodes whose
+actions differ (their digests): there should be none.
 Without a checkpoint a tiny untrained DiffusionPolicy is built (tests/tiny_policy.py): it fails
 every episode, so only the timings mean anything.
 """
@@ -59,10 +64,18 @@ def policy_input_size(ckpt: Path) -> tuple[int, int]:
     return int(shapes[0][1]), int(shapes[0][2])
 
 
+#: `so101-sim` with the exact speed-ups undone before the policy module is imported, for (e).
+PLAIN_KERNELS = (
+    "import sys; import so101_sim.harness.policies.pooling as p; import so101_sim.utils.heap as h; "
+    "p.use_channels_last_pooling = lambda module: 0; h.keep_freed_memory = lambda log=None: False; "
+    "from so101_sim.cli import main; sys.argv[0] = 'so101-sim'; sys.exit(main())")
+
+
 def run_harness(ckpt: Path, out: Path, episodes: int, n_envs: int, videos: int,
                 image_size: tuple[int, int] | None, task: str,
-                flags: tuple[str, ...] = ()) -> tuple[float, dict]:
-    cmd = [str(BIN / "so101-sim"), "eval", "--policy", str(ckpt), "--task", task,
+                flags: tuple[str, ...] = (), plain: bool = False) -> tuple[float, dict]:
+    exe = [sys.executable, "-c", PLAIN_KERNELS] if plain else [str(BIN / "so101-sim")]
+    cmd = [*exe, "eval", "--policy", str(ckpt), "--task", task,
            "--episodes", str(episodes), "--n-envs", str(n_envs), "--videos", str(videos),
            "--out", str(out), *flags]
     if image_size:
@@ -115,6 +128,8 @@ def main() -> None:
                         help="(b)'s forwards in both tools: fp32, or bfloat16 autocast in both")
     parser.add_argument("--paths", action="store_true",
                         help="run (c): the default render path against --faithful")
+    parser.add_argument("--plain-kernels", action="store_true",
+                        help="(e): also run (a) without the exact speed-ups, same seeds")
     parser.add_argument("--bf16", action="store_true",
                         help="run (d): fp32 forwards against --precision bf16")
     parser.add_argument("--quick", action="store_true",
@@ -165,6 +180,8 @@ def main() -> None:
         compare_variant("(c)", "faithful", wall, ckpt, work, n, k, task, ("--faithful",))
     if args.bf16:
         compare_variant("(d)", "bf16", wall, ckpt, work, n, k, task, ("--precision", "bf16"))
+    if args.plain_kernels:
+        compare_variant("(e)", "plain", wall, ckpt, work, n, k, task, (), plain=True)
     if not args.compare_lerobot:
         return
     inp = policy_input_size(ckpt)
@@ -190,11 +207,12 @@ def main() -> None:
 
 
 def compare_variant(label: str, name: str, wall_a: float, ckpt: Path, work: Path, n: int,
-                    k: int, task: str, flags: tuple[str, ...]) -> None:
+                    k: int, task: str, flags: tuple[str, ...], plain: bool = False) -> None:
     """Run (a)'s seeds again with `flags`; both walls, the ratio and the paired comparison."""
-    wall, agg = run_harness(ckpt, work / f"variant_{name}", n, k, 2, None, task, flags)
+    wall, agg = run_harness(ckpt, work / f"variant_{name}", n, k, 2, None, task, flags, plain)
     a = json.loads((work / "harness_a" / "eval_info.json").read_text())["aggregated"]
-    print(f"{label} {n} episodes, {k} envs, the same seeds, (a) against {' '.join(flags)}:")
+    what = "the exact speed-ups undone" if plain else " ".join(flags)
+    print(f"{label} {n} episodes, {k} envs, the same seeds, (a) against {what}:")
     print(f"    default {wall_a:7.1f} s  success {rate(a['n_success'], n)}")
     print(f"    {name:7s} {wall:7.1f} s  success {rate(agg['n_success'], n)}")
     print(f"    {name} / default wall: {wall / wall_a:.2f}x")
@@ -202,6 +220,11 @@ def compare_variant(label: str, name: str, wall_a: float, ckpt: Path, work: Path
 
     for line in summary_lines(compare_runs(work / "harness_a", work / f"variant_{name}")):
         print(f"    {line}")
+    digests = [{e["seed"]: e["actions_sha"] for e in json.loads(
+        (work / run / "eval_info.json").read_text())["per_episode"]}
+        for run in ("harness_a", f"variant_{name}")]
+    differ = sum(digests[0][s] != digests[1].get(s) for s in digests[0])
+    print(f"    episodes whose actions differ (digests): {differ} of {len(digests[0])}")
 
 if __name__ == "__main__":
     main()

@@ -1,6 +1,7 @@
 """What one policy forward costs per row at 8, 16, 32 rows, and whether the rows keep their bits.
 
     .venv/bin/python benchmarks/bench_forward_rows.py [CHECKPOINT] [--rows 8,16,32] [--repeats 10]
+    .venv/bin/python benchmarks/bench_forward_rows.py --pooling-ab   # the pooling swap, A/B
 
 The harness pads every forward to the policy's ``batch_size`` rows (8 by default) because a
 row's actions change bitwise with the batch size on CPU. This prints, per batch size, the
@@ -10,6 +11,10 @@ rounds through the sizes in turn; the encoder's share; the cost per row; and whe
 8 rows' actions equal those of an 8-row forward bit for bit. It answers how much a larger
 default batch would save, and what it would cost: every earlier run's actions. Run it with
 nothing else busy (pause training).
+
+``--pooling-ab`` instead times an 8-row forward with the harness's channels-last max pooling
+(``harness.policies.pooling``, what every loaded policy uses) against torch's default kernel,
+in alternating rounds, and checks that the actions keep their bits.
 """
 
 from __future__ import annotations
@@ -21,8 +26,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
 
 from so101_sim.harness.policies.lerobot import LeRobotPolicy
+from so101_sim.harness.policies.pooling import ChannelsLastMaxPool2d
 from so101_sim.harness.policies.protocol import ChunkRequest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,17 +64,56 @@ def seconds(fn) -> float:
     return time.perf_counter() - t0
 
 
+def default_pooling(policy: LeRobotPolicy) -> int:
+    """Put torch's own max pooling back where the loader swapped in the channels-last one."""
+    undone = 0
+    for parent in policy.policy.modules():
+        for name, child in list(parent.named_children()):
+            if type(child) is ChannelsLastMaxPool2d:
+                setattr(parent, name, nn.MaxPool2d(child.kernel_size, child.stride,
+                                                   child.padding, child.dilation,
+                                                   child.return_indices, child.ceil_mode))
+                undone += 1
+    return undone
+
+
+def pooling_ab(checkpoint: str, repeats: int) -> None:
+    """8-row forwards with the channels-last pooling against torch's default, alternating."""
+    quiet = lambda _: None  # noqa: E731
+    fast = LeRobotPolicy(checkpoint, batch_size=BASE, log=quiet)
+    plain = LeRobotPolicy(checkpoint, batch_size=BASE, log=quiet)
+    print(f"{checkpoint}: {default_pooling(plain)} max-pooling layer(s); one torch thread, "
+          f"median of {repeats} alternating rounds\n")
+    reqs = requests(fast, BASE)
+    same = bool(np.array_equal(chunks(fast, reqs), chunks(plain, reqs)))
+    times: dict[str, list[float]] = {"torch's default kernel": [], "channels-last (harness)": []}
+    for _ in range(repeats):
+        times["torch's default kernel"].append(seconds(lambda: chunks(plain, reqs)))
+        times["channels-last (harness)"].append(seconds(lambda: chunks(fast, reqs)))
+    print("| max pooling | 8-row forward ms | vs default |\n|---|---|---|")
+    base = statistics.median(times["torch's default kernel"])
+    for label, ts in times.items():
+        f = statistics.median(ts)
+        print(f"| {label} | {f * 1e3:.1f} | {f / base:.3f}x |")
+    print(f"\nactions bit for bit the same: {'yes' if same else 'NO'}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("checkpoint", nargs="?", default=str(ROOT / "policy/pick_place_diffusion"))
     parser.add_argument("--rows", default="8,16,32", help="batch sizes, comma-separated")
     parser.add_argument("--repeats", type=int, default=10, help="rounds of one forward per size")
+    parser.add_argument("--pooling-ab", action="store_true",
+                        help="time the channels-last max pooling against torch's default")
     args = parser.parse_args()
+    torch.set_num_threads(1)  # as each of the harness's two forward threads runs
+    if args.pooling_ab:
+        pooling_ab(args.checkpoint, args.repeats)
+        return
     sizes = [int(x) for x in args.rows.split(",")]
     if any(n < BASE for n in sizes):
         parser.error(f"--rows {args.rows}: every size must be >= {BASE} (the bit check compares "
                      f"the first {BASE} rows with an {BASE}-row forward)")
-    torch.set_num_threads(1)  # as each of the harness's two forward threads runs
     quiet = lambda _: None  # noqa: E731
     base = LeRobotPolicy(args.checkpoint, batch_size=BASE, log=quiet)
     ref = chunks(base, requests(base, BASE))

@@ -39,6 +39,7 @@ from so101_sim.harness.camera_map import (
     shown_camera_map,
 )
 from so101_sim.harness.policies.checks import check_features, fingerprint
+from so101_sim.harness.policies.pooling import use_channels_last_pooling
 from so101_sim.harness.policies.protocol import ChunkRequest, PolicyInfo
 from so101_sim.sim import CAMERAS
 from so101_sim.train.checkpoint import (
@@ -49,6 +50,7 @@ from so101_sim.train.checkpoint import (
     load_weights,
     train_image_size,
 )
+from so101_sim.utils.heap import keep_freed_memory
 from so101_sim.utils.trust import check_processor_files
 
 #: The project's diffusion setting (DESIGN.md): To=2, Tp=16, Ta=8, DDIM with 10 steps.
@@ -127,7 +129,10 @@ class LeRobotPolicy:
         self._apply_settings(cfg, {k: v for k, v in asked.items() if v is not None})
         cfg.device = device
         self.cfg = cfg
+        # Both change speed, not results: pooling.py, utils/heap.py.
+        keep_freed_memory(log)
         self.policy = load_weights(cfg, self.path)
+        use_channels_last_pooling(self.policy)
         self.pre, self.post = (_TakingTurns(p) for p in load_processors(cfg, self.path, device))
         self.batch_size = batch_size
         self._gens: dict[int, torch.Generator] = {}
