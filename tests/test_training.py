@@ -335,6 +335,33 @@ def test_init_from_starts_a_new_run_from_a_checkpoint(dataset: Path, tiny: Path,
     assert not list_checkpoints(tmp_path / "other")
 
 
+def test_init_from_another_image_size_rebuilds_only_the_softmax_grid(tmp_path: Path,
+                                                                    capsys) -> None:
+    """A 48x64 checkpoint fine-tunes at 96x128 (preset cpu96_ft): every learned weight carries
+    over, the spatial softmax keeps the coordinate grid of its own feature map, one line says
+    so; a learned weight of another shape is still refused."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from tiny_policy import make_tiny_diffusion_checkpoint
+
+    from so101_sim.train.checkpoint import init_weights_from, load_config, load_weights
+
+    small = make_tiny_diffusion_checkpoint(tmp_path / "small", input_size=(48, 64))
+    large = make_tiny_diffusion_checkpoint(tmp_path / "large", input_size=(96, 128), seed=1)
+    policy = load_weights(load_config(large), large)
+    grids = {k: v.clone() for k, v in policy.state_dict().items() if k.endswith("pos_grid")}
+    init_weights_from(policy, small)
+    assert "1 spatial-softmax coordinate grid(s) are rebuilt" in capsys.readouterr().out
+    want, got = _weights(small), policy.state_dict()
+    assert grids and all(tuple(want[k].shape) != tuple(g.shape) for k, g in grids.items())
+    for key, value in got.items():
+        assert torch.equal(value, grids[key] if key in grids else want[key]), key
+    narrow = make_tiny_diffusion_checkpoint(tmp_path / "narrow", input_size=(96, 128),
+                                            cameras=("front",))
+    with pytest.raises(ValueError, match="does not fit the preset's 'diffusion' architecture"):
+        init_weights_from(load_weights(load_config(narrow), narrow), small)
+    assert load_preset("cpu96_ft").image_size == (96, 128)
+
+
 def test_success_curve_goes_into_the_card(dataset: Path, tiny: Path, tmp_path: Path) -> None:
     """`so101-sim curve` evaluates each saved checkpoint on the same seeds; export draws it."""
     from so101_sim.harness.curve import evaluate_curve

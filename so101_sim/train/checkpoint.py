@@ -116,11 +116,27 @@ def read_train_info(path: str | Path) -> dict[str, Any] | None:
     return info
 
 
+def keep_own_grids(policy: Any, tensors: dict[str, Any]) -> list[str]:
+    """Put `policy`'s own spatial-softmax grids into `tensors` where their shapes differ.
+
+    lerobot's ``SpatialSoftmax`` keeps a ``pos_grid`` buffer of the feature map's pixel
+    coordinates, fixed by the image size, so a checkpoint of the same architecture at another
+    image size differs only there. Returns the keys replaced.
+    """
+    own = policy.state_dict()
+    swapped = [k for k, v in tensors.items()
+               if k.endswith(".pos_grid") and k in own and tuple(own[k].shape) != tuple(v.shape)]
+    for key in swapped:
+        tensors[key] = own[key]
+    return swapped
+
+
 def init_weights_from(policy: Any, path: str | Path) -> dict[str, Any]:
     """Copy the weights of the checkpoint at `path` into `policy` (a new run that fine-tunes it).
 
     Only ``config.json`` (its policy type) and ``model.safetensors`` are read: tensors, no code.
-    The architecture must match exactly; the new run keeps its own dataset's normalisation.
+    The architecture must match exactly, except the spatial-softmax grids, which follow the
+    preset's image size (``keep_own_grids``); the new run keeps its own dataset's normalisation.
     Returns what the run records about where it started.
     """
     import hashlib
@@ -134,8 +150,14 @@ def init_weights_from(policy: Any, path: str | Path) -> dict[str, Any]:
         raise ValueError(f"{path} holds a {then.type!r} policy; the preset builds a "
                          f"{policy.config.type!r} one: start from a checkpoint of the same type")
     raw = (path / "model.safetensors").read_bytes()  # read once: loaded and fingerprinted
+    tensors = load(raw)
+    regridded = keep_own_grids(policy, tensors)
+    if regridded:
+        print(f"so101-sim train: {path} was trained on another image size; its "
+              f"{len(regridded)} spatial-softmax coordinate grid(s) are rebuilt for this "
+              "preset's (a fixed grid, not learned); every learned weight carries over")
     try:
-        policy.load_state_dict(load(raw), strict=True)
+        policy.load_state_dict(tensors, strict=True)
     except RuntimeError as exc:  # missing/unexpected keys or shapes: another architecture
         lines = str(exc).splitlines()  # torch: a header line, then one line per mismatch
         first = (lines[1:] or lines)[0].strip()[:200]
