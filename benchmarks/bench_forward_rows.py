@@ -26,10 +26,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch import nn
 
 from so101_sim.harness.policies.lerobot import LeRobotPolicy
-from so101_sim.harness.policies.pooling import ChannelsLastMaxPool2d
+from so101_sim.harness.policies.pooling import use_default_pooling
 from so101_sim.harness.policies.protocol import ChunkRequest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -64,25 +63,13 @@ def seconds(fn) -> float:
     return time.perf_counter() - t0
 
 
-def default_pooling(policy: LeRobotPolicy) -> int:
-    """Put torch's own max pooling back where the loader swapped in the channels-last one."""
-    undone = 0
-    for parent in policy.policy.modules():
-        for name, child in list(parent.named_children()):
-            if type(child) is ChannelsLastMaxPool2d:
-                setattr(parent, name, nn.MaxPool2d(child.kernel_size, child.stride,
-                                                   child.padding, child.dilation,
-                                                   child.return_indices, child.ceil_mode))
-                undone += 1
-    return undone
-
-
 def pooling_ab(checkpoint: str, repeats: int) -> None:
     """8-row forwards with the channels-last pooling against torch's default, alternating."""
     quiet = lambda _: None  # noqa: E731
     fast = LeRobotPolicy(checkpoint, batch_size=BASE, log=quiet)
     plain = LeRobotPolicy(checkpoint, batch_size=BASE, log=quiet)
-    print(f"{checkpoint}: {default_pooling(plain)} max-pooling layer(s); one torch thread, "
+    undone = use_default_pooling(plain.policy)
+    print(f"{checkpoint}: {undone} max-pooling layer(s); one torch thread, "
           f"median of {repeats} alternating rounds\n")
     reqs = requests(fast, BASE)
     same = bool(np.array_equal(chunks(fast, reqs), chunks(plain, reqs)))

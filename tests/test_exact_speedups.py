@@ -13,7 +13,11 @@ from tiny_policy import make_tiny_diffusion_checkpoint
 from torch import nn
 
 from so101_sim.harness.policies.lerobot import LeRobotPolicy
-from so101_sim.harness.policies.pooling import ChannelsLastMaxPool2d, use_channels_last_pooling
+from so101_sim.harness.policies.pooling import (
+    ChannelsLastMaxPool2d,
+    use_channels_last_pooling,
+    use_default_pooling,
+)
 from so101_sim.harness.policies.protocol import ChunkRequest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,17 +52,6 @@ def test_with_gradients_on_the_default_kernel_runs_and_gradients_are_unchanged()
     assert ChannelsLastMaxPool2d(2, return_indices=True)(x)[1].dtype == torch.int64
 
 
-def _plain_pooling(policy: LeRobotPolicy) -> LeRobotPolicy:
-    """Undo the swap, for an A/B against the default kernel."""
-    for parent in policy.policy.modules():
-        for name, child in list(parent.named_children()):
-            if type(child) is ChannelsLastMaxPool2d:
-                setattr(parent, name, nn.MaxPool2d(child.kernel_size, child.stride,
-                                                   child.padding, child.dilation,
-                                                   child.return_indices, child.ceil_mode))
-    return policy
-
-
 def _requests(policy: LeRobotPolicy, n: int) -> list[ChunkRequest]:
     rng = np.random.default_rng(0)
     h, w = policy.info.image_size
@@ -85,7 +78,8 @@ def test_loaded_policies_pool_channels_last_and_their_actions_keep_their_bits(tm
     quiet = lambda _: None  # noqa: E731
     fast = LeRobotPolicy(path, log=quiet)
     assert sum(isinstance(m, ChannelsLastMaxPool2d) for m in fast.policy.modules()) == 1
-    plain = _plain_pooling(LeRobotPolicy(path, log=quiet))
+    plain = LeRobotPolicy(path, log=quiet)
+    assert use_default_pooling(plain.policy) == 1
     assert use_channels_last_pooling(nn.Sequential(nn.ReLU())) == 0
     reqs = _requests(fast, 11)  # one full forward of 8 rows and one padded
     np.testing.assert_array_equal(_chunks(fast, reqs), _chunks(plain, reqs))

@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["ChannelsLastMaxPool2d", "use_channels_last_pooling"]
+__all__ = ["ChannelsLastMaxPool2d", "use_channels_last_pooling", "use_default_pooling"]
 
 
 class ChannelsLastMaxPool2d(nn.MaxPool2d):
@@ -28,18 +28,27 @@ class ChannelsLastMaxPool2d(nn.MaxPool2d):
         return pooled.contiguous()
 
 
+def _swap(module: nn.Module, old: type, new: type) -> int:
+    swapped = 0
+    for parent in module.modules():
+        for name, child in list(parent.named_children()):
+            if type(child) is old:
+                setattr(parent, name, new(child.kernel_size, child.stride, child.padding,
+                                          child.dilation, child.return_indices,
+                                          child.ceil_mode))
+                swapped += 1
+    return swapped
+
+
 def use_channels_last_pooling(module: nn.Module) -> int:
     """Swap every plain ``nn.MaxPool2d`` inside ``module`` for the channels-last one.
 
     Returns how many were swapped. Parameters are untouched (pooling has none), so a
     checkpoint's weights and fingerprint stay what they were.
     """
-    swapped = 0
-    for parent in module.modules():
-        for name, child in list(parent.named_children()):
-            if type(child) is nn.MaxPool2d:
-                setattr(parent, name, ChannelsLastMaxPool2d(
-                    child.kernel_size, child.stride, child.padding, child.dilation,
-                    child.return_indices, child.ceil_mode))
-                swapped += 1
-    return swapped
+    return _swap(module, nn.MaxPool2d, ChannelsLastMaxPool2d)
+
+
+def use_default_pooling(module: nn.Module) -> int:
+    """Undo ``use_channels_last_pooling`` (for A/B timings and tests); returns the count."""
+    return _swap(module, ChannelsLastMaxPool2d, nn.MaxPool2d)
