@@ -18,9 +18,11 @@ from so101_sim.harness.policies.pooling import (
     use_channels_last_pooling,
     use_default_pooling,
 )
-from so101_sim.harness.policies.protocol import ChunkRequest
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from bench_forward_rows import chunks as _chunks  # noqa: E402  (one way to build requests)
+from bench_forward_rows import requests as _requests  # noqa: E402
 
 
 @pytest.mark.parametrize("shape,kwargs", [
@@ -52,25 +54,6 @@ def test_with_gradients_on_the_default_kernel_runs_and_gradients_are_unchanged()
     assert ChannelsLastMaxPool2d(2, return_indices=True)(x)[1].dtype == torch.int64
 
 
-def _requests(policy: LeRobotPolicy, n: int) -> list[ChunkRequest]:
-    rng = np.random.default_rng(0)
-    h, w = policy.info.image_size
-    reqs = []
-    for slot in range(n):
-        history = [{"agent_pos": rng.uniform(-1, 1, 6).astype(np.float32),
-                    "pixels": {c: rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
-                               for c in policy.info.cameras}}
-                   for _ in range(policy.info.n_obs_steps)]
-        reqs.append(ChunkRequest(slot, 1000 + slot, history))
-    return reqs
-
-
-def _chunks(policy: LeRobotPolicy, reqs: list[ChunkRequest]) -> np.ndarray:
-    for r in reqs:
-        policy.start_episode(r.slot, r.seed)
-    return policy.predict_chunks(reqs)
-
-
 @pytest.mark.parametrize("which", ["tiny", "shipped"])
 def test_loaded_policies_pool_channels_last_and_their_actions_keep_their_bits(tmp_path, which):
     path = (make_tiny_diffusion_checkpoint(tmp_path / "tiny") if which == "tiny"
@@ -87,7 +70,7 @@ def test_loaded_policies_pool_channels_last_and_their_actions_keep_their_bits(tm
 
 FAULTS = """
 import resource, sys
-sys.path.insert(0, {tests!r})
+sys.path.insert(0, {bench!r})
 import numpy as np
 if {keep}:
     from so101_sim.utils.heap import keep_freed_memory
@@ -98,7 +81,7 @@ else:
 import torch
 torch.set_num_threads(1)
 from so101_sim.harness.policies.lerobot import LeRobotPolicy
-from test_exact_speedups import _chunks, _requests
+from bench_forward_rows import chunks as _chunks, requests as _requests
 policy = LeRobotPolicy({ckpt!r}, log=lambda _: None)
 reqs = _requests(policy, 8)
 _chunks(policy, reqs); _chunks(policy, reqs)
@@ -114,7 +97,7 @@ def test_a_policy_process_keeps_its_freed_memory_so_forwards_stop_page_faulting(
     faults = {}
     for keep in (True, False):
         out = subprocess.run([sys.executable, "-c", FAULTS.format(
-            tests=str(ROOT / "tests"), keep=keep, ckpt=ckpt)],
+            bench=str(ROOT / "benchmarks"), keep=keep, ckpt=ckpt)],
             capture_output=True, text=True, check=True)
         faults[keep] = int(out.stdout.split()[-1])
     # measured here: 0 kept, ~4,950 per 8-row forward on glibc's default heap
