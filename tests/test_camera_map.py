@@ -29,12 +29,15 @@ def test_parse_and_resolve_name_the_fix():
             parse_camera_map(bad)
     assert resolve_camera_map(["front", "wrist"], {"wrist": "side"}, "ckpt") == {
         "front": "front", "wrist": "side"}
-    with pytest.raises(ValueError, match=r"camera 'wrist'.*--camera-map wrist=front"):
-        resolve_camera_map(["front", "wrist"], None, "ckpt")
+    with pytest.raises(ValueError, match=r"camera 'laptop'.*--camera-map laptop=front"):
+        resolve_camera_map(["front", "laptop"], None, "ckpt")
+    # the env has a wrist camera too: a rig's `wrist` input takes it unless mapped elsewhere
+    assert resolve_camera_map(["front", "wrist"], None, "ckpt") == {
+        "front": "front", "wrist": "wrist"}
     with pytest.raises(ValueError, match=r"names \['laptop'\].*cameras are \['top'\]"):
         resolve_camera_map(["top"], {"laptop": "front"}, "ckpt")
-    with pytest.raises(ValueError, match=r"maps onto \['wrist'\]"):
-        resolve_camera_map(["top"], {"top": "wrist"}, "ckpt")
+    with pytest.raises(ValueError, match=r"maps onto \['phone'\]"):
+        resolve_camera_map(["top"], {"top": "phone"}, "ckpt")
 
 
 @pytest.fixture(scope="module")

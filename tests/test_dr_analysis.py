@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -10,6 +9,7 @@ import tomllib
 from pathlib import Path
 
 import numpy as np
+from script_loader import load_script
 
 from so101_sim.harness.stats import mcnemar_p_value
 
@@ -19,10 +19,7 @@ CARD = ROOT / "policy" / "suite_diffusion"
 
 
 def _by_place():
-    spec = importlib.util.spec_from_file_location("by_place", BASELINES / "by_place.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(BASELINES / "by_place.py")
 
 
 def _wins(path: Path) -> dict[int, bool]:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import io
 import json
 import os
@@ -17,6 +16,7 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 from safetensors.torch import load_file
+from script_loader import load_script
 
 from so101_sim.dataset.reader import open_lerobot_dataset
 from so101_sim.record import record
@@ -27,11 +27,8 @@ SIZE = (24, 32)
 
 
 def _pack_module():
-    spec = importlib.util.spec_from_file_location("pack_dataset", GPU / "pack_dataset.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["pack_dataset"] = module  # --workers pickles its functions by module name
-    spec.loader.exec_module(module)
-    return module
+    # --workers pickles its functions by module name
+    return load_script(GPU / "pack_dataset.py", register=True)
 
 
 @pytest.fixture(scope="module")

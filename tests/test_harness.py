@@ -304,7 +304,7 @@ def test_bad_checkpoints_are_named(tiny_ckpt, tmp_path):
             cfg = json.loads((d / "config.json").read_text())
             feats = cfg["input_features"]
             if value is None:
-                feats[key.replace("side", "wrist")] = feats.pop(key)
+                feats[key.replace("side", "laptop")] = feats.pop(key)
             else:
                 feats[key]["shape"] = value
             (d / "config.json").write_text(json.dumps(cfg))
@@ -313,7 +313,7 @@ def test_bad_checkpoints_are_named(tiny_ckpt, tmp_path):
     cases = [
         (corrupt_config, ValueError, "config.json is not a lerobot policy config"),
         (truncate_weights, RuntimeError, "model.safetensors could not be loaded"),
-        (edit_features("observation.images.side", None), ValueError, "camera 'wrist'"),
+        (edit_features("observation.images.side", None), ValueError, "camera 'laptop'"),
         (edit_features("observation.state", [7]), ValueError, r"observation.state of shape \(7,\)"),
         (lambda d: (d / "policy_preprocessor.json").unlink(), FileNotFoundError,
          "no policy_preprocessor.json"),

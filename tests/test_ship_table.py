@@ -2,25 +2,18 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
+from script_loader import load_script
 
 from so101_sim.cli import main
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "baselines" / "ship_table.py"
 
 
-def _ship_table():
-    spec = importlib.util.spec_from_file_location("ship_table", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-SHIP_TABLE = _ship_table()
+SHIP_TABLE = load_script(SCRIPT)
 TASKS = SHIP_TABLE.shipped_tasks(SHIP_TABLE.SHIPPED)
 
 

@@ -30,7 +30,8 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     try:
         s = record(Path(args.out), args.episodes, task=args.task, seed_start=args.seed_start,
-                   image_size=args.image_size, keep_failures=args.keep_failures,
+                   image_size=args.image_size, cameras=args.cameras,
+                   keep_failures=args.keep_failures,
                    resume=args.resume, workers=args.workers, dart_noise=args.dart_noise,
                    vcodec=args.vcodec, recover=args.recover,
                    grasp_clearance=args.grasp_clearance, backend=args.backend,

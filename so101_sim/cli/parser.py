@@ -41,6 +41,16 @@ def parse_ensemble_coeff(text: str) -> float | str:
         ) from None
 
 
+def parse_cameras(text: str) -> tuple[str, ...]:
+    """argparse type for --cameras: "front,side,wrist" -> ("front", "side", "wrist")."""
+    from so101_sim.sim.env_args import check_cameras
+
+    try:
+        return check_cameras(tuple(c.strip() for c in text.split(",") if c.strip()))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def parse_camera_map_arg(text: str) -> dict[str, str]:
     """argparse type for --camera-map (see so101_sim.harness.camera_map)."""
     from so101_sim.harness.camera_map import parse_camera_map
@@ -90,6 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--seed-start", type=int, default=0, help="first reset seed (0..99999)")
     rec.add_argument("--image-size", type=parse_image_size, default=(480, 640),
                      help="HEIGHTxWIDTH of each camera (default 480x640)")
+    rec.add_argument("--cameras", type=parse_cameras, default=None,
+                     help="cameras to record, comma-separated from front, side, wrist "
+                          "(default the task's: front,side); e.g. front,side,wrist")
     rec.add_argument("--keep-failures", action="store_true",
                      help="also keep episodes the expert failed")
     rec.add_argument("--resume", action="store_true",

@@ -21,7 +21,13 @@ from typing import Any
 import numpy as np
 
 from so101_sim.dataset.reader import info_features, stored_seeds
-from so101_sim.dataset.schema import DEFAULT_VCODEC, ROBOT_TYPE, VCODECS, dataset_features
+from so101_sim.dataset.schema import (
+    CAMERAS,
+    DEFAULT_VCODEC,
+    ROBOT_TYPE,
+    VCODECS,
+    dataset_features,
+)
 from so101_sim.dataset.store import (
     COMMIT,
     SCRATCH,
@@ -108,6 +114,19 @@ def _resume_settings(root: Path, side: dict[str, Any], image_size: tuple[int, in
         raise ValueError(f"{root} holds {codec} videos; resume with --vcodec {codec} or "
                          "without --vcodec (videos of one dataset share a codec)")
     return codec
+
+
+def _resumed_cameras(root: Path, asked: tuple[str, ...], given: bool) -> tuple[str, ...]:
+    """The cameras of the dataset being resumed (its video keys), or an error if `given`
+    cameras differ from them."""
+    prefix = "observation.images."
+    own = tuple(k[len(prefix):] for k, v in info_features(root).items()
+                if k.startswith(prefix) and v.get("dtype") == "video")
+    if given and tuple(asked) != own:
+        raise ValueError(f"{root} records cameras {','.join(own)}, not {','.join(asked)}; "
+                         f"resume with --cameras {','.join(own)} or without --cameras (one "
+                         "dataset holds one set of cameras)")
+    return own
 
 
 def _adopt(root: Path, side: dict[str, Any]) -> None:
@@ -233,9 +252,12 @@ def create_dataset(root: Path, **create_kwargs: Any) -> None:
 
 def open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
                  image_size: tuple[int, int], seed_start: int, dart_noise: float,
-                 vcodec: str | None, queue_size: int, expert: dict[str, Any]) -> Opened:
+                 vcodec: str | None, queue_size: int, expert: dict[str, Any],
+                 cameras: tuple[str, ...] = CAMERAS, cameras_given: bool = False) -> Opened:
     """Create the dataset, or bring it back to its last checkpoint and reopen it; write the
-    sidecar. A folder that holds anything needs `resume`."""
+    sidecar. A folder that holds anything needs `resume`; a resumed dataset keeps its own
+    cameras (`cameras_given`: the caller asked for `cameras` explicitly, refused if they
+    differ)."""
     exists = has_content(root)  # the run's own lock file does not count
     if exists and resume and _killed_while_creating(root):
         clear_folder(root)  # nothing was recorded yet: start as if it had never run
@@ -254,6 +276,7 @@ def open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
         else:  # seeds tried after the checkpoint are tried again (from the spool, mostly)
             side["tried"], side["failures"] = record["tried"], record["failures"]
         codec = _resume_settings(root, side, image_size, dart_noise, vcodec, expert)
+        cameras = _resumed_cameras(root, cameras, cameras_given)
         tried = [int(s) for s in side.get("tried", [])] + stored_seeds(root)
         repo_id = side.get("repo_id", repo_id)
         task_arg = side.get("task", task_arg)
@@ -266,12 +289,12 @@ def open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
         encoder = encoder_config(codec)
         root.mkdir(parents=True, exist_ok=True)
         create_dataset(root, repo_id=repo_id, fps=30, robot_type=ROBOT_TYPE,
-                       features=dataset_features(image_size, dart_noise > 0),
+                       features=dataset_features(image_size, dart_noise > 0, cameras),
                        use_videos=True, rgb_encoder=encoder)
         tried, failures, next_seed, fresh = [], {}, seed_start, True
     side = {"repo_id": repo_id, "task": task_arg, "image_size": list(image_size),
             "dart_noise": dart_noise, "vcodec": codec, "tried": sorted(set(tried)),
-            "failures": failures, "expert": expert}
+            "failures": failures, "expert": expert, "cameras": list(cameras)}
     write_sidecar(root, side)
     if fresh:
         checkpoint(root, side)  # the empty dataset: what a kill before any episode returns to

@@ -1,16 +1,17 @@
 """Which env camera feeds each camera input of a policy (``so101-sim eval --camera-map``).
 
 A policy trained on a real SO-101 names its cameras after that rig (``front`` and ``wrist``,
-or ``top``, ``laptop``, ``phone``); the env renders ``front`` and ``side``. A map such as
-``top=front,wrist=side`` feeds the env's front camera to the policy's ``top`` input. Policy
-cameras already named like an env camera map to it unless the map says otherwise.
+or ``top``, ``laptop``, ``phone``); the env renders ``front``, ``side`` and ``wrist`` (on the
+gripper). A map such as ``top=front,laptop=side`` feeds the env's front camera to the
+policy's ``top`` input. Policy cameras already named like an env camera map to it unless the
+map says otherwise.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
 
-from so101_sim.tasks import DEFAULT_CAMERAS as CAMERAS
+from so101_sim.tasks import ALL_CAMERAS as CAMERAS
 
 
 def parse_camera_map(text: str) -> dict[str, str]:

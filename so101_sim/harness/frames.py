@@ -12,6 +12,7 @@ width (``SO101Env(mesh_width=...)``), so the smaller render shows the policy the
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -42,6 +43,13 @@ class Rendering:
     @property
     def resize(self) -> bool:
         return self.input_size is not None and self.render_size != self.input_size
+
+
+def with_cameras(task: TaskSpec, cameras: tuple[str, ...]) -> TaskSpec:
+    """`task` rendering `cameras` too, after its own: a policy may read a camera the task does
+    not film by default (the wrist), and its videos and saved rollouts then show it as well."""
+    extra = tuple(c for c in cameras if c not in task.cameras)
+    return dataclasses.replace(task, cameras=task.cameras + extra) if extra else task
 
 
 def choose_rendering(info: PolicyInfo, image_size: tuple[int, int] | None,

@@ -29,7 +29,7 @@ import numpy as np
 from so101_sim.dataset import EVAL_SEED_START
 from so101_sim.harness.env_worker import EnvWorkerConfig
 from so101_sim.harness.forwards import Forwards
-from so101_sim.harness.frames import Rendering, choose_rendering, to_policy_obs
+from so101_sim.harness.frames import Rendering, choose_rendering, to_policy_obs, with_cameras
 from so101_sim.harness.policies import ChunkRequest, EvalPolicy, load_policy
 from so101_sim.harness.results import (
     EpisodeRecord,
@@ -117,6 +117,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
         "render_size": list(rendering.render_size), "mesh_width": rendering.mesh_width,
         "policy_image_size": list(rendering.input_size) if rendering.input_size else None,
     }
+    spec = with_cameras(spec, info.cameras)  # after the identity: the task is the same one
     if save_rollouts is not None:  # absolute: a resume from another folder still matches
         identity["save_rollouts"] = str(Path(save_rollouts).expanduser().resolve())
     if resume and run.config_path.exists():

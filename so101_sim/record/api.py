@@ -20,7 +20,9 @@ DART noise: see ``record.episode``.
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +33,7 @@ from so101_sim.dataset.schema import DEFAULT_REPO_ID, VCODECS, check_seed_range
 from so101_sim.dataset.store import SCRATCH, SIDECAR, read_sidecar
 from so101_sim.record.episode import check_dart_noise, expert_options
 from so101_sim.sim import SO101Env
+from so101_sim.sim.env_args import check_cameras
 from so101_sim.sim.rendering import select_gl_backend
 from so101_sim.tasks import load_task
 from so101_sim.utils.devices import cpu_count
@@ -70,7 +73,8 @@ def _task_arg(task: str | Path, root: Path, resume: bool) -> str:
 
 def record(out_dir: str | Path, n_episodes: int, task: str | Path = "pick_place",
            seed_start: int = 0, image_size: tuple[int, int] = (480, 640),
-           keep_failures: bool = False, resume: bool = False, workers: int = 1,
+           cameras: Sequence[str] | None = None, keep_failures: bool = False,
+           resume: bool = False, workers: int = 1,
            repo_id: str = DEFAULT_REPO_ID, progress: bool = True, dart_noise: float = 0.0,
            vcodec: str | None = None, recover: bool = False,
            grasp_clearance: float | None = None, backend: str = "local",
@@ -83,7 +87,9 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path = "pick_place"
     cluster at `ray_address`, ``"auto"`` or ``host:port``) simulate, render and encode.
     Every finished episode is spooled, and the dataset is checkpointed every
     `checkpoint_every` episodes and on any exit we can catch (Ctrl-C, SIGTERM); after a hard
-    kill, `resume` recovers every finished episode (see ``dataset.store``). `vcodec` is
+    kill, `resume` recovers every finished episode (see ``dataset.store``). `cameras` are the
+    cameras recorded (default the task's; ``("front", "side", "wrist")`` adds the wrist); a
+    resumed dataset keeps its own. `vcodec` is
     ``"h264"`` (default for new datasets) or ``"libsvtav1"``; a resumed dataset keeps its own.
     `dart_noise` is the std of the noise added to executed actions (``run_episode``), 0 for
     none; `recover` and `grasp_clearance` are ScriptedExpert options (retries; gap between
@@ -112,9 +118,12 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path = "pick_place"
         spec = load_task(task_arg)
         if spec.fps != 30:
             raise ValueError(f"task fps is {spec.fps}; the dataset is recorded at 30 fps")
+        cams = check_cameras(spec.cameras if cameras is None else cameras)
         cpu0 = time.process_time()
         opened = open_dataset(root, resume, repo_id, task_arg, image_size, seed_start,
-                              dart_noise, vcodec, spec.max_steps + 2, expert)
+                              dart_noise, vcodec, spec.max_steps + 2, expert, cams,
+                              cameras_given=cameras is not None)
+        spec = dataclasses.replace(spec, cameras=tuple(opened.side["cameras"]))
         side = opened.side
         tally = Tally(root, side, opened.ds.meta.total_episodes, n_episodes, progress)
         worker_spec = RecorderSpec(spec, image_size, side["dart_noise"], side["expert"],

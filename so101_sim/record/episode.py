@@ -13,8 +13,6 @@ from typing import Any
 
 import numpy as np
 
-from so101_sim.dataset.schema import CAMERAS, VIDEO_KEYS
-
 _DART_STREAM = 0xDA27  # second SeedSequence word: the noise never correlates with the jitter
 
 
@@ -77,9 +75,8 @@ def run_episode(env: Any, expert: Any, seed: int, emit: Callable[[dict[str, Any]
             noisy = action + rng.normal(0.0, dart_noise, size=action.shape)
             executed = np.clip(noisy, env.action_low, env.action_high).astype(np.float32)
             frame["action_executed"] = executed
-        for key, cam in zip(VIDEO_KEYS, CAMERAS, strict=True):
-            if "pixels" in obs:  # a state-only env gives none (success-rate studies)
-                frame[key] = obs["pixels"][cam]
+        for cam in obs.get("pixels", ()):  # a state-only env gives none (success-rate studies)
+            frame[f"observation.images.{cam}"] = obs["pixels"][cam]
         emit(frame)
         obs, _, terminated, truncated, step_info = env.step(executed)
         steps += 1

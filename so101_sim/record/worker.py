@@ -17,7 +17,6 @@ from typing import Any
 
 import numpy as np
 
-from so101_sim.dataset.schema import VIDEO_KEYS
 from so101_sim.record.episode import run_episode
 from so101_sim.tasks import TaskSpec
 from so101_sim.utils.video_backend import quiet_libav
@@ -44,15 +43,16 @@ class RecorderSpec:
 class _Columns:
     """`emit` of ``run_episode``: images go to the video encoders, the rest is kept per column."""
 
-    def __init__(self, encoder: Any) -> None:
+    def __init__(self, encoder: Any, video_keys: tuple[str, ...]) -> None:
         self.encoder = encoder
+        self.video_keys = video_keys
         self.columns: dict[str, list[np.ndarray]] = {}
         self.time_write = 0.0
 
     def __call__(self, frame: dict[str, Any]) -> None:
         t = time.perf_counter()
         for key, value in frame.items():
-            if key in VIDEO_KEYS:
+            if key in self.video_keys:
                 self.encoder.feed_frame(key, value)
             elif key != "task":
                 self.columns.setdefault(key, []).append(value)
@@ -75,6 +75,7 @@ class EpisodeRecorder:
         self.tmp = Path(tempfile.mkdtemp(prefix="worker-", dir=base))
         self.env = PickPlaceEnv(task=spec.task, obs_type="pixels_agent_pos_env_state",
                                 image_size=spec.image_size)
+        self.video_keys = tuple(f"observation.images.{cam}" for cam in self.env.cameras)
         self.expert = ScriptedExpert(self.env.task, model=self.env.model, **spec.expert)
         self.encoder = StreamingVideoEncoder(
             fps=self.env.task.fps, queue_maxsize=spec.queue_size,
@@ -85,8 +86,8 @@ class EpisodeRecorder:
         keep comes back without columns or videos (nothing to send)."""
         env, spec = self.env, self.spec
         phys0, rend0, cpu0 = env.time_physics, env.time_render, time.process_time()
-        cols = _Columns(self.encoder)
-        self.encoder.start_episode(video_keys=list(VIDEO_KEYS), temp_dir=self.tmp)
+        cols = _Columns(self.encoder, self.video_keys)
+        self.encoder.start_episode(video_keys=list(self.video_keys), temp_dir=self.tmp)
         try:
             success, mode, steps = run_episode(env, self.expert, seed, cols, spec.dart_noise)
         except BaseException:

@@ -7,7 +7,8 @@ import json
 from pathlib import Path
 from typing import Any
 
-from so101_sim.sim import CAMERAS, ENV_STATE_SIZE
+from so101_sim.sim import ENV_STATE_SIZE
+from so101_sim.tasks import ALL_CAMERAS as CAMERAS
 from so101_sim.train.checkpoint import TRAIN_INFO
 
 STATE_KEY = "observation.state"
@@ -46,7 +47,7 @@ def check_features(cfg: Any, path: Path) -> tuple[tuple[str, ...], Any, bool]:
                              f"{expected}")
     if len(sizes) > 1:
         raise ValueError(f"{where} expects cameras at different sizes {sorted(sizes)}; the "
-                         "harness renders both cameras at one size")
+                         "harness renders every camera at one size")
     action = cfg.output_features.get("action")
     if action is None or tuple(action.shape) != (6,):
         raise ValueError(f"{where} outputs action of shape "

@@ -41,7 +41,7 @@ from so101_sim.harness.camera_map import (
 from so101_sim.harness.policies.checks import check_features, fingerprint
 from so101_sim.harness.policies.pooling import use_channels_last_pooling
 from so101_sim.harness.policies.protocol import ChunkRequest, PolicyInfo
-from so101_sim.sim import CAMERAS
+from so101_sim.tasks import ALL_CAMERAS as CAMERAS
 from so101_sim.train.checkpoint import (
     check_files,
     checkpoint_name,

@@ -15,7 +15,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from so101_sim.tasks import DEFAULT_CAMERAS as CAMERAS
+from so101_sim.tasks import ALL_CAMERAS as CAMERAS
 
 Obs = dict[str, Any]
 
