@@ -55,22 +55,15 @@ def collect(task: str, seeds: list[int], render: tuple[int, int]) -> dict[str, n
             rng = np.random.default_rng(seed)
             keep_at = int(rng.integers(10, 40))  # a step of approach/descent, per seed
             seen = 0
-            while True:
-                action = expert.select_action(obs)
-                if expert.phase not in ON_THE_WAY and expert.phase != "done" and seen:
-                    break
-                obs, *_ = env.step(action)
+            while seen < keep_at:
+                obs, *_ = env.step(expert.select_action(obs))
                 if expert.phase in ON_THE_WAY:
                     seen += 1
-                    if seen == keep_at:
-                        st = env.task_state()
-                        out["way"].append(obs["pixels"])
-                        out["offset"].append((st["cube_pos"] - st["tcp_pos"])[:2])
-                        break
-            else:  # pragma: no cover - the loop always breaks
-                pass
-            if len(out["way"]) < len(out["reset"]):
-                sys.exit(f"seed {seed}: the expert's approach took under {keep_at} steps")
+                elif seen:  # past the descent before the kept step
+                    sys.exit(f"seed {seed}: the expert's approach took under {keep_at} steps")
+            st = env.task_state()
+            out["way"].append(obs["pixels"])
+            out["offset"].append((st["cube_pos"] - st["tcp_pos"])[:2])
     finally:
         env.close()
     return {k: (v if k in ("reset", "way") else np.asarray(v)) for k, v in out.items()}

@@ -36,12 +36,13 @@ def added_cameras(then: Any, now: Any) -> list[str]:
         return []
     old, new = list(then.image_features), list(now.image_features)
     same = ("n_obs_steps", "spatial_softmax_num_keypoints", "diffusion_step_embed_dim",
-            "down_dims", "use_separate_rgb_encoder_per_camera")
+            "down_dims")
+    low_dim = [[p for p in step_layout(c) if p[0] not in c.image_features] for c in (then, now)]
     if (any(getattr(then, k) != getattr(now, k) for k in same)
-            or then.use_separate_rgb_encoder_per_camera
+            or then.use_separate_rgb_encoder_per_camera  # one encoder per camera: not widened
+            or now.use_separate_rgb_encoder_per_camera
             or [k for k in new if k in old] != old  # every old camera kept, in its order
-            or [p for p in step_layout(then) if p[0] not in then.image_features]
-            != [p for p in step_layout(now) if p[0] not in now.image_features]):
+            or low_dim[0] != low_dim[1]):  # the same state / env-state inputs
         return []
     return [k for k in new if k not in old]
 
