@@ -44,7 +44,9 @@ def _encode(frames: np.ndarray, path: Path, fps: int, crf: int) -> None:
         stream = container.add_stream("libx264", rate=fps)
         stream.height, stream.width = frames.shape[1:3]
         stream.pix_fmt = "yuv444p"
-        stream.options = {"crf": str(crf), "preset": "slow"}
+        # one encoder thread: the bytes then depend on the frames alone, not on how the
+        # process was started (--workers forks; files are encoded in parallel instead)
+        stream.options = {"crf": str(crf), "preset": "slow", "threads": "1"}
         for frame in frames:
             for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
                 container.mux(packet)
