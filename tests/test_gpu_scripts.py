@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import os
@@ -36,7 +37,13 @@ def packed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("gpu")
     record(root / "src", 1, image_size=(48, 64), progress=False)
     _pack_module().pack(root / "src", root / "packed", SIZE, crf=14)
+    (root / "src_videos.json").write_text(json.dumps(_video_digests(root / "src")))
     return root / "src", root / "packed"
+
+
+def _video_digests(folder: Path) -> dict[str, str]:
+    return {str(v.relative_to(folder)): hashlib.sha256(v.read_bytes()).hexdigest()
+            for v in sorted(folder.glob("videos/**/*.mp4"))}
 
 
 def test_packing_keeps_the_recording_and_shrinks_the_videos(packed, capsys) -> None:
@@ -77,6 +84,10 @@ def test_packing_in_parallel_can_drop_what_the_trainer_does_not_read(packed, tmp
     for key in ("observation.state", "action", "index"):
         assert np.array_equal(np.asarray(b.hf_dataset.with_format("numpy")[key]),
                               np.asarray(a.hf_dataset.with_format("numpy")[key]))
+    # a mismatch below once failed CI: these say whether the source or the encode moved
+    assert _video_digests(src) == json.loads((src.parent / "src_videos.json").read_text()), \
+        "the recording's videos changed after record() returned"
+    assert _video_digests(out) == _video_digests(one), "same frames, different bytes"
     c = open_lerobot_dataset(one)  # packed one file at a time
     for key in a.meta.video_keys:
         assert np.array_equal(decode_camera(b, key, SIZE), decode_camera(c, key, SIZE))
