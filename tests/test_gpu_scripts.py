@@ -36,8 +36,8 @@ def _pack_module():
 def packed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("gpu")
     record(root / "src", 1, image_size=(48, 64), progress=False)
-    _pack_module().pack(root / "src", root / "packed", SIZE, crf=14)
     (root / "src_videos.json").write_text(json.dumps(_video_digests(root / "src")))
+    _pack_module().pack(root / "src", root / "packed", SIZE, crf=14)
     return root / "src", root / "packed"
 
 

@@ -44,8 +44,8 @@ def _encode(frames: np.ndarray, path: Path, fps: int, crf: int) -> None:
         stream = container.add_stream("libx264", rate=fps)
         stream.height, stream.width = frames.shape[1:3]
         stream.pix_fmt = "yuv444p"
-        # one encoder thread: the bytes then depend on the frames alone, not on how the
-        # process was started (--workers forks; files are encoded in parallel instead)
+        # one encoder thread: no thread scheduling inside x264, so --workers (files in
+        # parallel, in forked processes) can match one process byte for byte
         stream.options = {"crf": str(crf), "preset": "slow", "threads": "1"}
         for frame in frames:
             for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
