@@ -331,8 +331,8 @@ def test_inference_overrides_are_checked(tiny_ckpt):
     assert any("n_action_steps=8; using 4 as asked" in m for m in messages)
     with pytest.raises(ValueError, match=r"n_action_steps=20 is invalid.*1\.\.15"):
         LeRobotPolicy(tiny_ckpt, n_action_steps=20, log=messages.append)
-    with pytest.raises(ValueError, match=r"--temporal-ensemble applies to ACT.*'diffusion'"):
-        LeRobotPolicy(tiny_ckpt, temporal_ensemble_coeff=0.01, log=messages.append)
+    with pytest.raises(ValueError, match=r"--temporal-ensemble nan is invalid"):
+        LeRobotPolicy(tiny_ckpt, temporal_ensemble_coeff=float("nan"), log=messages.append)
     with pytest.raises(ValueError, match="apply to lerobot checkpoints"):
         load_policy("expert", batch_size=4)
 

@@ -226,3 +226,41 @@ def test_a_language_policy_gets_the_task_description(tmp_path):
                       progress=False, report=False, log=lambda _: None)
     assert result["aggregated"]["n_episodes"] == 1
     assert SEEN_TASKS and set(SEEN_TASKS) == {spec.description}
+
+
+def test_diffusion_temporal_ensembling_averages_the_overlapping_chunks(tmp_path):
+    """`--temporal-ensemble` on a Diffusion checkpoint: a forward every step, and each step's
+    action is ACT's weighted mean (exp(-0.01 i), i = 0 the oldest) of what every chunk so far
+    said for that step; each chunk is the horizon - To + 1 = 15 actions from the step it was
+    sampled at, with the episode's own seeded noise (the same chunks one plain 15-action
+    forward at a time gives), whatever env shares the batch."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from tiny_policy import make_tiny_diffusion_checkpoint
+
+    ckpt = make_tiny_diffusion_checkpoint(tmp_path / "dp", input_size=SIZE)
+    messages: list[str] = []
+    ours = LeRobotPolicy(ckpt, temporal_ensemble_coeff=0.01, batch_size=2, log=messages.append)
+    assert ours.info.n_action_steps == 1 and ours.ensemble.chunk_size == 15
+    assert any("temporal_ensemble_coeff=None; using 0.01 as asked" in m for m in messages)
+    assert "temporal ensembling" in ours.info.details
+    plain = LeRobotPolicy(ckpt, n_action_steps=15, batch_size=1, log=lambda _: None)
+    for p in (ours, plain):
+        p.start_episode(0, 100_000)
+    ours.start_episode(1, 100_001)
+    rng = np.random.default_rng(0)
+    chunks, got = [], []
+    for _ in range(5):
+        mine, other = [_obs(rng), _obs(rng)], [_obs(rng), _obs(rng)]
+        got.append(ours.predict_chunks([ChunkRequest(0, 100_000, mine),
+                                        ChunkRequest(1, 100_001, other)])[0, 0])
+        chunks.append(plain.predict_chunks([ChunkRequest(0, 100_000, mine)])[0])
+    assert chunks[0].shape == (15, 6)
+    for t in range(5):
+        weights = np.exp(-0.01 * np.arange(t + 1))
+        want = sum(w * chunks[k][t - k] for k, w in enumerate(weights)) / weights.sum()
+        np.testing.assert_allclose(got[t], want, rtol=1e-5, atol=1e-3)
+    assert not np.allclose(got[1], chunks[1][0], atol=1e-3)  # step 1 is a mean, not the newest
+    with pytest.raises(ValueError, match="drop --n-action-steps"):
+        LeRobotPolicy(ckpt, temporal_ensemble_coeff=0.01, n_action_steps=8)

@@ -362,6 +362,32 @@ def test_init_from_another_image_size_rebuilds_only_the_softmax_grid(tmp_path: P
     assert load_preset("cpu96_ft").image_size == (96, 128)
 
 
+def test_nocrop_preset_sees_the_whole_frame_and_takes_the_suite_weights(capsys) -> None:
+    """cpu_ft_nocrop: no crop in training either (two train-mode encodes of one image agree,
+    where cpu_ft's random crops do not), and the shipped 60x80 suite weights load unchanged,
+    grids included, since the whole 60x80 frame gives the same 2x3 feature map as the crop."""
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+
+    from so101_sim.train.checkpoint import init_weights_from
+    from so101_sim.utils.paths import policy_dir
+
+    encodes = {}
+    for name in ("cpu_ft", "cpu_ft_nocrop"):
+        preset = load_preset(name)
+        torch.manual_seed(0)
+        policy = DiffusionPolicy(make_config(preset, *policy_features(preset.image_size)))
+        if name == "cpu_ft_nocrop":
+            assert preset.policy["crop_shape"] is None and preset.image_size == (60, 80)
+            init_weights_from(policy, policy_dir() / "suite_diffusion")
+            assert "grid" not in capsys.readouterr().out  # nothing rebuilt: the same 2x3 map
+        encoder = policy.diffusion.rgb_encoder.train()
+        image = torch.rand(1, 3, *preset.image_size, generator=torch.Generator().manual_seed(1))
+        with torch.no_grad():
+            encodes[name] = [encoder(image) for _ in range(4)]
+    assert all(torch.equal(e, encodes["cpu_ft_nocrop"][0]) for e in encodes["cpu_ft_nocrop"])
+    assert not all(torch.equal(e, encodes["cpu_ft"][0]) for e in encodes["cpu_ft"])
+
+
 def test_success_curve_goes_into_the_card(dataset: Path, tiny: Path, tmp_path: Path) -> None:
     """`so101-sim curve` evaluates each saved checkpoint on the same seeds; export draws it."""
     from so101_sim.harness.curve import evaluate_curve

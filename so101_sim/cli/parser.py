@@ -192,7 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     cu.add_argument("--task", default="pick_place",
                     help="task to evaluate on (a multi-task run has one curve per task)")
     cu.add_argument("--temporal-ensemble", type=parse_ensemble_coeff, default=None,
-                    metavar="COEFF", help="ACT: evaluate with temporal ensembling (as `eval "
+                    metavar="COEFF", help="evaluate with temporal ensembling (as `eval "
                     "--temporal-ensemble`); a separate curve from the checkpoints' own setting")
     cu.set_defaults(func=commands.cmd_curve)
 
@@ -265,8 +265,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="diffusion sampler (default: the checkpoint's)")
     ev.add_argument("--temporal-ensemble", type=parse_ensemble_coeff, default=None,
                     metavar="COEFF",
-                    help="ACT: temporal ensembling with this coefficient (0.01 in ACT's paper): "
-                         "a forward every step, chunks averaged with weights exp(-COEFF*i); "
+                    help="temporal ensembling with this coefficient (0.01 in ACT's paper): "
+                         "a forward every step, chunks averaged with weights exp(-COEFF*i) "
+                         "(ACT; a Diffusion Policy averages its horizon-To+1 actions); "
                          "'off' runs an ensembling checkpoint chunk-wise (with "
                          "--n-action-steps); default: the checkpoint's (lerobot-eval's "
                          "--policy.temporal_ensemble_coeff)")

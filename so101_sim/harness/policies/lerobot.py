@@ -169,10 +169,9 @@ class LeRobotPolicy:
             if asked.get("noise_scheduler_type", "DDIM") not in ("DDIM", "DDPM"):
                 raise ValueError(f"noise_scheduler={asked['noise_scheduler_type']!r} is invalid; "
                                  "expected 'DDIM' or 'DDPM'")
-            if "temporal_ensemble_coeff" in asked:
-                raise ValueError(f"--temporal-ensemble applies to ACT policies; {self.path} is "
-                                 "a 'diffusion' policy (it executes --n-action-steps of each "
-                                 "chunk)")
+            self._ensemble_settings(asked, None)
+            if asked.get("temporal_ensemble_coeff") is not None:
+                del asked["n_action_steps"]  # every action of each chunk is read: below
         else:
             other = sorted(set(asked) - {"n_action_steps", "temporal_ensemble_coeff"})
             if other:
@@ -183,12 +182,17 @@ class LeRobotPolicy:
                     raise ValueError(f"{cfg.type!r} policies have no {key} to override")
             self._ensemble_settings(asked, getattr(cfg, "temporal_ensemble_coeff", None))
         for key, value in asked.items():
-            if getattr(cfg, key) != value:
+            if getattr(cfg, key, None) != value:  # DiffusionConfig has no ensembling field
                 self.log(f"so101-sim eval: warning: checkpoint {self.path} says "
-                         f"{key}={getattr(cfg, key)!r}; using {value!r} as asked")
+                         f"{key}={getattr(cfg, key, None)!r}; using {value!r} as asked")
                 setattr(cfg, key, value)
+        coeff = getattr(cfg, "temporal_ensemble_coeff", None)
+        chunk = getattr(cfg, "chunk_size", None)
         if self.is_diffusion:
             have = {k: getattr(cfg, k) for k in STANDARD_DIFFUSION}
+            if coeff is not None:  # the chunk from the current step on: horizon - To + 1
+                chunk = cfg.n_action_steps = cfg.horizon - n_obs + 1
+                have["n_action_steps"] = "1, temporally ensembled"
             if have["num_inference_steps"] is None:
                 have["num_inference_steps"] = cfg.num_train_timesteps
             off = {k: v for k, v in have.items() if v != STANDARD_DIFFUSION[k]}
@@ -205,11 +209,10 @@ class LeRobotPolicy:
             raise ValueError(f"{cfg.type!r} policy with n_obs_steps={n_obs} is not supported: "
                              "the harness feeds observation histories to diffusion policies only")
         self.ensemble = None
-        coeff = getattr(cfg, "temporal_ensemble_coeff", None)
         if coeff is not None:  # a forward every step, averaged over the chunks so far
             from so101_sim.harness.policies.ensemble import SlotEnsemblers
 
-            self.ensemble = SlotEnsemblers(coeff, cfg.chunk_size)
+            self.ensemble = SlotEnsemblers(coeff, chunk)
         self.n_obs_steps = n_obs
         self.n_action_steps = 1 if coeff is not None else int(getattr(cfg, "n_action_steps", 1))
 
@@ -244,9 +247,10 @@ class LeRobotPolicy:
             d["sampler"] = f"{cfg.noise_scheduler_type}-{steps}, noise seeded per episode"
         else:
             d["observations / chunk executed"] = f"{self.n_obs_steps} / {self.n_action_steps}"
-            if self.ensemble is not None:
-                d["temporal ensembling"] = (f"coefficient {cfg.temporal_ensemble_coeff}, "
-                                            "a forward every step")
+        if self.ensemble is not None:
+            d["temporal ensembling"] = (f"coefficient {cfg.temporal_ensemble_coeff} over "
+                                        f"{self.ensemble.chunk_size}-action chunks, a forward "
+                                        "every step")
         if any(p != e for p, e in self.camera_map.items()):
             d["cameras"] = describe_camera_map(self.camera_map)
         d["batched inference"] = (f"padded to {self.batch_size} rows per forward"
@@ -273,7 +277,7 @@ class LeRobotPolicy:
                 drawn = [self._draw_noise(r.slot) for r in group]
                 noise = torch.stack(drawn + [drawn[0]] * pad)
             if self.ensemble is not None:
-                chunks = self._predict_raw(batch, None)[:len(group)]
+                chunks = self._predict_raw(batch, noise)[:len(group)]
                 actions = self.post(self.ensemble.step([r.slot for r in group], chunks))
                 actions = actions.to("cpu", torch.float32)
             else:
