@@ -192,7 +192,7 @@ def test_curve_with_temporal_ensembling_is_a_curve_of_its_own(tmp_path):
         details[folder] = info["config"]["policy_details"]
     assert "temporal ensembling" not in details[stem]
     assert details[f"{stem}-temporal_ensemble_coeff=0.01"]["temporal ensembling"] == (
-        "coefficient 0.01, a forward every step")
+        "coefficient 0.01 over 8-action chunks, a forward every step")
     # The CLI draws each curve into its own plot (both measured above: nothing runs here).
     from so101_sim.cli import main
 

@@ -45,7 +45,9 @@ def _encode(frames: np.ndarray, path: Path, fps: int, crf: int) -> None:
         stream.height, stream.width = frames.shape[1:3]
         stream.pix_fmt = "yuv444p"
         # one encoder thread: no thread scheduling inside x264, so --workers (files in
-        # parallel, in forked processes) can match one process byte for byte
+        # parallel, in forked processes) can match one process byte for byte. Below about
+        # 48x64 x264's macroblock-tree lookahead is not repeatable even so
+        # (tests/test_gpu_scripts.py)
         stream.options = {"crf": str(crf), "preset": "slow", "threads": "1"}
         for frame in frames:
             for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
