@@ -73,7 +73,8 @@ def test_packing_keeps_the_recording_and_shrinks_the_videos(packed, capsys) -> N
 
 
 def test_packing_in_parallel_can_drop_what_the_trainer_does_not_read(packed, tmp_path) -> None:
-    """--workers re-encodes files in processes with the same result; --drop-columns removes a
+    """--workers re-encodes files in processes as close to the source as one process does
+    (bytes: the xfail below); --drop-columns removes a
     feature from the tables and info.json and refuses one the trainer reads."""
     src, _ = packed
     out = tmp_path / "packed2"

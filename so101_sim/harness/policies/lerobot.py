@@ -84,8 +84,8 @@ class LeRobotPolicy:
     """Loads a lerobot checkpoint directory and answers batched chunk requests.
 
     ``n_action_steps``, ``num_inference_steps`` and ``noise_scheduler`` (diffusion) and
-    ``temporal_ensemble_coeff`` (ACT) override the checkpoint's inference settings (with a
-    warning); None keeps the checkpoint's.
+    ``temporal_ensemble_coeff`` (ACT or diffusion) override the checkpoint's inference
+    settings (with a warning); None keeps the checkpoint's.
     ``batch_size``: rows per forward (see the module docstring); 1 = one forward per env.
     ``camera_map``: policy camera name -> env camera, for checkpoints whose cameras are named
     after another rig (``so101_sim.harness.camera_map``). ``task_description`` goes into every
