@@ -38,6 +38,13 @@ def test_the_experts_grasp_closes_on_the_cube_and_opens_to_release(tmp_path: Pat
     assert float(cells["nearest_before_cm"]) < 1.0
     assert float(cells["cube_moved_cm"]) > 2.0
     assert int(cells["most_open_after"]) > 30
+    # The expert's rollout against the expert on its seed: the same pan at the close.
+    pans = _trace("--expert-pan", str(rollouts))
+    assert pans.returncode == 0, pans.stderr
+    header, _, row = pans.stdout.splitlines()
+    cells = dict(zip([c.strip() for c in header.split("|")[1:-1]],
+                     [c.strip() for c in row.split("|")[1:-1]], strict=True))
+    assert cells["pan_at_close"] == cells["expert_pan_at_close"] != "None", cells
     # Every close: one, on the cube, held between the jaws (both pads on it, the joint
     # stopped open by the cube's width), and the cube rose with the tool.
     closes = _trace("--every-close", str(rollouts))

@@ -111,3 +111,21 @@ def test_the_expert_reaches_the_far_edge_of_the_reach() -> None:
                 assert err < 1e-3, (r, angle, err)
     finally:
         env.close()
+
+
+@pytest.mark.parametrize(("variant", "parent"), [
+    ("lift_right", "lift"),
+    ("pick_place_anywhere_right", "pick_place_anywhere"),
+    ("pick_place_anywhere_corner", "pick_place_anywhere"),
+])
+def test_the_extra_demo_variants_draw_inside_their_task(variant: str, parent: str) -> None:
+    """benchmarks/baselines/tasks/ variants record extra demos for a region of their task: they
+    must be that task with a narrower cube range, so their demos are the task's own."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "baselines" / "tasks"
+    var, task = load_task(path / f"{variant}.toml"), load_task(parent)
+    assert var.kind == task.kind and var.description == task.description
+    assert var.reach == task.reach and var.max_steps == task.max_steps
+    assert var.cube_yaw == task.cube_yaw and var.cube_size == task.cube_size
+    for mine, theirs in ((var.cube_x, task.cube_x), (var.cube_y, task.cube_y)):
+        assert theirs[0] <= mine[0] <= mine[1] <= theirs[1], (variant, mine, theirs)
+    assert (var.target_x, var.target_y) == (task.target_x, task.target_y)

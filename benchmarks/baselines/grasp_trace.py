@@ -19,6 +19,11 @@ risen 1 cm, each pad's distance to that cube and the gripper joint's angle at th
 cube between the jaws stops them: both pads touching, the joint open by the cube's width), and
 how far the tool and the cube rose before the next opening (a held cube rises with the tool).
 
+``--expert-pan`` adds the shoulder_pan command (degrees) at that first close, and the scripted
+expert's at its own close on the same seed (no noise): where they differ by more than a few
+degrees the arm closed beside the cube, not on it (the right-hand corner of
+pick_place_anywhere, the baselines page, "twenty-seventh session").
+
 ``--count-reopens`` reads the ``action`` column only (no replay) of any folder, rollouts or a
 ``so101-sim record`` dataset, and counts per episode how often the gripper opened again after
 a close: 1 is a plain pick-and-place (the release), each retry of the recovering expert
@@ -37,9 +42,11 @@ import numpy as np
 import pandas as pd
 
 from so101_sim.dataset import SIDECAR, info_features, read_frames, read_sidecar
+from so101_sim.expert import ScriptedExpert
 from so101_sim.sim import SO101Env
 
 GRIPPER = 5  # action index of the gripper: 0 closed .. 100 open
+PAN = 0  # action index of shoulder_pan
 
 
 def episodes(folder: Path) -> tuple[str, list[pd.DataFrame]]:
@@ -102,7 +109,25 @@ def trace(task: str, ep: pd.DataFrame, open_at: float, closed_at: float) -> dict
         row["at_close_cm"] = round(100 * clearance[close], 1)
         row["cube_moved_cm"] = round(100 * float(np.linalg.norm((env.cube_pos() - start)[:2])), 1)
         row["most_open_after"] = round(float(grip[close:].max()))
+        row["pan_at_close"] = round(float(actions[close, PAN]), 1)
     return row
+
+
+def expert_pan_at_close(task: str, seed: int, limit: int = 300) -> float | None:
+    """The scripted expert's shoulder_pan command when it starts closing on `seed`."""
+    env = SO101Env(task, obs_type="state")
+    expert = ScriptedExpert(env.task, model=env.model)
+    obs, _ = env.reset(seed=seed)
+    expert.reset(seed=seed)
+    try:
+        for _ in range(limit):
+            action = expert.select_action(obs)
+            if expert.phase == "close":
+                return round(float(action[PAN]), 1)
+            obs, *_ = env.step(action)
+    finally:
+        env.close()
+    return None
 
 
 def _pads_cm(env: SO101Env, k: int) -> tuple[float, float]:
@@ -159,6 +184,8 @@ def main(argv: list[str] | None = None) -> None:
                     help="gripper command counted as closed")
     ap.add_argument("--count-reopens", action="store_true",
                     help="per folder, episodes by how often the gripper reopened after a close")
+    ap.add_argument("--expert-pan", action="store_true",
+                    help="add the pan at the first close and the expert's on the same seed")
     ap.add_argument("--every-close", action="store_true",
                     help="one row per close on any cube: did the cube rise with the tool")
     args = ap.parse_args(argv)
@@ -182,11 +209,15 @@ def main(argv: list[str] | None = None) -> None:
         return
     cols = ("seed", "failure", "replay_matches", "first_close", "nearest_before_cm",
             "at_close_cm", "cube_moved_cm", "most_open_after")
+    if args.expert_pan:
+        cols += ("pan_at_close", "expert_pan_at_close")
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
     for task, eps in loaded:
         for ep in eps:
             row = trace(task, ep, args.open, args.closed)
+            if args.expert_pan:
+                row["expert_pan_at_close"] = expert_pan_at_close(task, row["seed"])
             print("| " + " | ".join(str(row.get(c, "")) for c in cols) + " |")
 
 
