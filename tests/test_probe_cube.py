@@ -33,3 +33,18 @@ def test_the_table_has_a_row_per_probe_and_camera(tmp_path: Path):
             r.startswith("| random")]
     assert len(rows) == 2 * 2 * 3  # (checkpoint, random) x (reset, approach) x (both, each)
     assert all(len(r.split("|")) == 5 + 2 for r in rows)  # name, probe, 2 bins, all
+
+
+def test_keypoints_are_what_the_encoders_linear_layer_reads(tmp_path: Path):
+    import torch
+
+    from so101_sim.harness.policies.lerobot import LeRobotPolicy
+
+    probe = load_script(SCRIPT)
+    ckpt = make_tiny_diffusion_checkpoint(tmp_path / "tiny", dataset_image_size=None)
+    enc = LeRobotPolicy(ckpt, batch_size=1, log=lambda s: None).policy.diffusion.rgb_encoder
+    x = torch.rand(3, 3, 48, 64)
+    with torch.no_grad():
+        points, full = probe.Keypoints(enc)(x), enc(x)
+    assert points.shape == (3, enc.out.in_features)  # 2 per keypoint, before the linear layer
+    assert torch.allclose(enc.relu(enc.out(points)), full)

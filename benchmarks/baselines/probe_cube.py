@@ -18,6 +18,9 @@ An encoder that sees the cube equally well everywhere has flat errors across bin
 policy fails in with a larger error here points at what the cameras show there (or how the
 encoder pools it), a flat one at what the policy does with what it sees. ``--random`` adds a
 randomly initialised encoder of the first checkpoint's shape as a floor to read against.
+``--keypoints`` also probes each encoder one step earlier: its SpatialSoftmax keypoints (32
+expected (x, y) positions per camera), before the linear layer and ReLU that the U-Net's
+conditioning passes through.
 """
 
 from __future__ import annotations
@@ -93,6 +96,23 @@ def features(pol: LeRobotPolicy, frames: list[dict[str, np.ndarray]],
     return np.concatenate(rows)
 
 
+class Keypoints(torch.nn.Module):
+    """A Diffusion rgb_encoder cut before its linear layer: its own resize and eval crop, the
+    backbone, then the SpatialSoftmax keypoints, flattened."""
+
+    def __init__(self, encoder: torch.nn.Module) -> None:
+        super().__init__()
+        self.encoder = encoder
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        enc = self.encoder
+        if enc.resize is not None:
+            x = enc.resize(x)
+        if enc.do_crop:
+            x = enc.center_crop(x)
+        return torch.flatten(enc.pool(enc.backbone(x)), start_dim=1)
+
+
 def cv_errors(x: np.ndarray, y: np.ndarray, folds: int = 5, lam: float = 1e-2) -> np.ndarray:
     """Held-out |prediction - truth| (metres, Euclidean) per row, ridge on standardised x."""
     x = (x - x.mean(0)) / (x.std(0) + 1e-6)
@@ -118,6 +138,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--render", default="120x160", help="render size HxW, resized to the "
                     "checkpoint's input as eval does (default 120x160)")
     ap.add_argument("--random", action="store_true", help="add a randomly initialised encoder")
+    ap.add_argument("--keypoints", action="store_true", help="also probe each encoder's "
+                    "SpatialSoftmax keypoints (before its linear layer)")
     ap.add_argument("--per-camera", action="store_true", help="also probe each camera's "
                     "features alone")
     args = ap.parse_args(argv)
@@ -136,8 +158,12 @@ def main(argv: list[str] | None = None) -> int:
         if not pol.is_diffusion:
             sys.exit(f"{path}: a {pol.cfg.type} checkpoint; this probe reads a Diffusion "
                      "Policy's rgb_encoder, pass a diffusion checkpoint")
-        names.append(path.parent.name if path.name == "pretrained_model" else path.name)
+        name = path.parent.name if path.name == "pretrained_model" else path.name
+        names.append(name)
         encoders.append((pol, None))
+        if args.keypoints:
+            names.append(f"{name}, keypoints")
+            encoders.append((pol, Keypoints(pol.policy.diffusion.rgb_encoder).eval()))
     if args.random:
         pol = encoders[0][0]
         torch.manual_seed(0)
