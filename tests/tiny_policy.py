@@ -20,7 +20,8 @@ def make_tiny_diffusion_checkpoint(out_dir: str | Path, input_size: tuple[int, i
                                    cameras: tuple[str, ...] = ("front", "side"),
                                    state_dim: int = 6, seed: int = 0,
                                    noise_scheduler_type: str = "DDIM",
-                                   num_inference_steps: int | None = 10) -> Path:
+                                   num_inference_steps: int | None = 10,
+                                   keypoints: int = 8) -> Path:
     """Write a DiffusionPolicy checkpoint (To=2, Tp=16, Ta=8) into `out_dir` and return it."""
     from lerobot.configs import FeatureType, PolicyFeature
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
@@ -40,7 +41,7 @@ def make_tiny_diffusion_checkpoint(out_dir: str | Path, input_size: tuple[int, i
         n_obs_steps=2, horizon=16, n_action_steps=8,
         vision_backbone="resnet18", pretrained_backbone_weights=None, use_group_norm=True,
         crop_shape=(h - 16, w - 24), crop_is_random=True,
-        use_separate_rgb_encoder_per_camera=False, spatial_softmax_num_keypoints=8,
+        use_separate_rgb_encoder_per_camera=False, spatial_softmax_num_keypoints=keypoints,
         down_dims=(16, 32), kernel_size=3, n_groups=4, diffusion_step_embed_dim=16,
         noise_scheduler_type=noise_scheduler_type, num_inference_steps=num_inference_steps,
         device="cpu",

@@ -14,7 +14,7 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from so101_sim.train.widen import widen_conditioning
+from so101_sim.train.widen import widen_conditioning, widen_keypoints
 from so101_sim.utils.trust import check_processor_files
 
 #: The sidecar ``train`` writes beside each checkpoint's weights.
@@ -138,8 +138,8 @@ def init_weights_from(policy: Any, path: str | Path) -> dict[str, Any]:
     Only ``config.json`` (its policy type) and ``model.safetensors`` are read: tensors, no code.
     The architecture must match exactly, except the spatial-softmax grids, which follow the
     preset's image size (``keep_own_grids``), and a Diffusion checkpoint may have fewer cameras
-    than the new run (``train.widen``: the new ones start with zero weight); the new run keeps
-    its own dataset's normalisation.
+    or keypoints than the new run (``train.widen``: the new ones start with zero weight in the
+    U-Net's conditioning); the new run keeps its own dataset's normalisation.
     Returns what the run records about where it started.
     """
     import hashlib
@@ -155,7 +155,13 @@ def init_weights_from(policy: Any, path: str | Path) -> dict[str, Any]:
     raw = (path / "model.safetensors").read_bytes()  # read once: loaded and fingerprinted
     tensors = load(raw)
     regridded = keep_own_grids(policy, tensors)
+    more_kp = widen_keypoints(then, policy.config, tensors, policy.state_dict())
     added = widen_conditioning(then, policy.config, tensors)
+    if more_kp:
+        print(f"so101-sim train: {path} has {then.spatial_softmax_num_keypoints} keypoints per "
+              f"camera, the preset {policy.config.spatial_softmax_num_keypoints}; the new ones "
+              "enter the U-Net's conditioning through zero weights, so the run starts from "
+              "exactly the checkpoint's actions and learns to use them")
     if added:
         names = ", ".join(k.rsplit(".", 1)[-1] for k in added)
         print(f"so101-sim train: {path} was trained without camera(s) {names}; they enter the "
@@ -177,7 +183,8 @@ def init_weights_from(policy: Any, path: str | Path) -> dict[str, Any]:
     info = read_train_info(path) or {}
     return {"path": str(path.resolve()), "model_sha256": digest, "step": info.get("step"),
             "preset": info.get("preset"), "dataset": info.get("dataset"),
-            **({"added_cameras": added} if added else {})}
+            **({"added_cameras": added} if added else {}),
+            **({"added_keypoints": more_kp} if more_kp else {})}
 
 
 def load_checkpoint(path: str | Path, device: str = "cpu",
