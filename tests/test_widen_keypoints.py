@@ -68,3 +68,33 @@ def test_fewer_keypoints_than_the_checkpoint_is_refused(tmp_path: Path) -> None:
     new = load_weights(load_config(eight), eight)
     with pytest.raises(ValueError, match=r"does not fit the preset's 'diffusion' architecture"):
         init_weights_from(new, sixteen)
+
+
+def test_the_kp128_preset_widens_the_shipped_suite_policy_without_changing_its_actions(
+        capsys) -> None:
+    """benchmarks/baselines/presets/cpu_ft_nocrop_kp128.toml: 128 keypoints, no crop, lr 1e-4;
+    the shipped 32-keypoint suite_diffusion starts it with the actions it samples through
+    `cpu_ft_nocrop` (the same preset at 32 keypoints: whole frames, as this one sees them)."""
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+
+    from so101_sim.train.checkpoint import init_weights_from
+    from so101_sim.train.presets import load_preset, make_config, policy_features
+    from so101_sim.utils.paths import policy_dir
+
+    preset = load_preset(Path(__file__).parents[1] / "benchmarks" / "baselines" / "presets"
+                         / "cpu_ft_nocrop_kp128.toml")
+    assert preset.policy["spatial_softmax_num_keypoints"] == 128
+    assert preset.policy["crop_shape"] is None and preset.policy["optimizer_lr"] == 1e-4
+    shipped = policy_dir() / "suite_diffusion"
+    old, new = (DiffusionPolicy(make_config(p, *policy_features(p.image_size))).eval()
+                for p in (load_preset("cpu_ft_nocrop"), preset))
+    assert "added_keypoints" not in init_weights_from(old, shipped)
+    assert init_weights_from(new, shipped)["added_keypoints"] == 96
+    gen = torch.Generator().manual_seed(0)
+    batch = {"observation.state": torch.randn(2, 2, 6, generator=gen),
+             "observation.images": torch.rand(2, 2, 2, 3, 60, 80, generator=gen)}
+    noise = torch.randn(2, 16, 6, generator=gen)
+    with torch.no_grad():
+        want = old.diffusion.generate_actions(batch, noise=noise)
+        got = new.diffusion.generate_actions(batch, noise=noise)
+    np.testing.assert_allclose(got.numpy(), want.numpy(), rtol=0, atol=1e-4)
