@@ -160,8 +160,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "by default they are deleted then (a pause or --stop-at keeps them)")
     tr.add_argument("--init-from", default=None, metavar="CHECKPOINT",
                     help="start a new run from this checkpoint's weights (fine-tuning, e.g. "
-                         "policy/suite_diffusion on more demos); same preset architecture; "
-                         "the optimiser, schedule and normalisation start fresh")
+                         "policy/suite_diffusion on more demos); same preset architecture, "
+                         "or a Diffusion one with more cameras or keypoints (they start at "
+                         "zero weight); the optimiser, schedule and normalisation start fresh")
     tr.add_argument("--oversample-closes", type=float, default=None, metavar="FACTOR",
                     help="draw the frames around each close of the gripper (1.5 s before to "
                          "0.5 s after) FACTOR times as often as the rest, for policies whose "
