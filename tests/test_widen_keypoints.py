@@ -98,3 +98,23 @@ def test_the_kp128_preset_widens_the_shipped_suite_policy_without_changing_its_a
         want = old.diffusion.generate_actions(batch, noise=noise)
         got = new.diffusion.generate_actions(batch, noise=noise)
     np.testing.assert_allclose(got.numpy(), want.numpy(), rtol=0, atol=1e-4)
+
+
+def test_a_checkpoint_whose_weights_disagree_with_its_config_is_refused(tmp_path: Path) -> None:
+    """A checkpoint's files are data: keypoint weights that do not match its config's count
+    get an error naming the tensor and both shapes, not a bare torch error or a silent cut."""
+    import pytest
+    from safetensors.torch import load_file, save_file
+
+    from so101_sim.train.checkpoint import init_weights_from, load_config, load_weights
+    from so101_sim.train.widen import KEYPOINT_CONV
+
+    eight = make_tiny_diffusion_checkpoint(tmp_path / "eight")
+    tensors = load_file(eight / "model.safetensors")
+    tensors[KEYPOINT_CONV + "weight"] = tensors[KEYPOINT_CONV + "weight"][:4].contiguous()
+    save_file(tensors, eight / "model.safetensors")
+    sixteen = make_tiny_diffusion_checkpoint(tmp_path / "sixteen", keypoints=16, seed=1)
+    new = load_weights(load_config(sixteen), sixteen)
+    with pytest.raises(ValueError, match=r"pool\.nets\.weight is \(4, 512, 1, 1\), not the 8 "
+                                         r"rows its config\.json's 8 keypoints need"):
+        init_weights_from(new, eight)

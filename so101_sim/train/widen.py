@@ -110,6 +110,12 @@ def widen_keypoints(then: Any, now: Any, tensors: dict[str, Any],
     if not added:
         return 0
     k = 2 * int(then.spatial_softmax_num_keypoints)  # flattened (x, y) per keypoint: old first
+    for name, rows in ((KEYPOINT_CONV + "weight", k // 2), (ENCODER_OUT + "weight", k)):
+        got = tuple(tensors[name].shape) if name in tensors else None
+        if got is None or got[0] != rows:  # the config and the weights disagree: not widened
+            raise ValueError(f"{name} is {got}, not the {rows} rows its config.json's "
+                             f"{k // 2} keypoints need; the checkpoint is inconsistent: "
+                             "start from one that `so101-sim eval` loads")
     for name in ("weight", "bias"):
         conv = fresh[KEYPOINT_CONV + name].clone()
         conv[:k // 2] = tensors[KEYPOINT_CONV + name]
