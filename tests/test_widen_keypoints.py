@@ -12,6 +12,20 @@ sys.path.insert(0, str(Path(__file__).parent))
 from tiny_policy import make_tiny_diffusion_checkpoint
 
 
+def _assert_same_actions(old, new, rows: int, size: tuple[int, int], atol: float):
+    """Both policies sample the same actions from one random two-camera batch and noise;
+    returns (batch, generator) for further draws."""
+    gen = torch.Generator().manual_seed(0)
+    batch = {"observation.state": torch.randn(rows, 2, 6, generator=gen),
+             "observation.images": torch.rand(rows, 2, 2, 3, *size, generator=gen)}
+    noise = torch.randn(rows, 16, 6, generator=gen)
+    with torch.no_grad():
+        want = old.diffusion.generate_actions(batch, noise=noise)
+        got = new.diffusion.generate_actions(batch, noise=noise)
+    np.testing.assert_allclose(got.numpy(), want.numpy(), rtol=0, atol=atol)
+    return batch, gen
+
+
 def test_an_8_keypoint_checkpoint_widens_to_16_without_changing_its_actions(
         tmp_path: Path, capsys) -> None:
     """The new keypoints' features enter the U-Net through zero columns and the old features
@@ -32,14 +46,7 @@ def test_an_8_keypoint_checkpoint_widens_to_16_without_changing_its_actions(
     assert torch.equal(conv[:8], old.state_dict()[KEYPOINT_CONV + "weight"])
     assert float(conv[8:].std()) > 0  # the fresh policy's random keypoints, not zeros
 
-    gen = torch.Generator().manual_seed(0)
-    batch = {"observation.state": torch.randn(3, 2, 6, generator=gen),
-             "observation.images": torch.rand(3, 2, 2, 3, 48, 64, generator=gen)}
-    noise = torch.randn(3, 16, 6, generator=gen)
-    with torch.no_grad():
-        want = old.diffusion.generate_actions(batch, noise=noise)
-        got = new.diffusion.generate_actions(batch, noise=noise)
-    np.testing.assert_allclose(got.numpy(), want.numpy(), rtol=0, atol=1e-5)
+    batch, gen = _assert_same_actions(old, new, rows=3, size=(48, 64), atol=1e-5)
 
     # per obs step: state 6, front 32, side 32 (16 keypoints x 2), the old 16 of each first
     layers = [m for n, m in new.diffusion.named_modules()
@@ -90,14 +97,7 @@ def test_the_kp128_preset_widens_the_shipped_suite_policy_without_changing_its_a
                 for p in (load_preset("cpu_ft_nocrop"), preset))
     assert "added_keypoints" not in init_weights_from(old, shipped)
     assert init_weights_from(new, shipped)["added_keypoints"] == 96
-    gen = torch.Generator().manual_seed(0)
-    batch = {"observation.state": torch.randn(2, 2, 6, generator=gen),
-             "observation.images": torch.rand(2, 2, 2, 3, 60, 80, generator=gen)}
-    noise = torch.randn(2, 16, 6, generator=gen)
-    with torch.no_grad():
-        want = old.diffusion.generate_actions(batch, noise=noise)
-        got = new.diffusion.generate_actions(batch, noise=noise)
-    np.testing.assert_allclose(got.numpy(), want.numpy(), rtol=0, atol=1e-4)
+    _assert_same_actions(old, new, rows=2, size=(60, 80), atol=1e-4)
 
 
 def test_a_checkpoint_whose_weights_disagree_with_its_config_is_refused(tmp_path: Path) -> None:
