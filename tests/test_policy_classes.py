@@ -155,6 +155,15 @@ def test_temporal_ensemble_flag_switches_a_checkpoint_either_way(tmp_path):
     assert not np.array_equal(off[:, :, 0], on[:3, :, 0])  # ensembling did change the actions
     # runs with and without the flag are told apart (compare and --resume read the fingerprint)
     assert switched_on.info.fingerprint != plain.info.fingerprint
+    assert switched_off.info.fingerprint not in (plain.info.fingerprint, native.info.fingerprint)
+    # asking for the checkpoint's own setting is the same evaluation, so the same fingerprint
+    # (an `eval --temporal-ensemble off` folder and a `curve` of the same weights pair up)
+    same_as_plain = LeRobotPolicy(chunked, temporal_ensemble_coeff="off", n_action_steps=8,
+                                  batch_size=2, log=lambda _: None)
+    assert same_as_plain.info.fingerprint == plain.info.fingerprint
+    same_as_native = LeRobotPolicy(ensembled, temporal_ensemble_coeff=0.01, batch_size=2,
+                                   log=lambda _: None)
+    assert same_as_native.info.fingerprint == native.info.fingerprint
 
 
 def test_temporal_ensemble_flag_refuses_what_cannot_run(tmp_path):

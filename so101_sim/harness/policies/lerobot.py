@@ -126,7 +126,11 @@ class LeRobotPolicy:
                  "temporal_ensemble_coeff": temporal_ensemble_coeff}
         self.is_diffusion = cfg.type == "diffusion"
         check_processor_files(self.path, cfg.type)  # before lerobot instantiates any step
+        # asking for what the checkpoint already does is the same evaluation: same fingerprint
+        saved = {k: getattr(cfg, k, None) for k in asked}
         self._apply_settings(cfg, {k: v for k, v in asked.items() if v is not None})
+        asked = {k: None if v == saved[k] or (v == "off" and saved[k] is None) else v
+                 for k, v in asked.items()}
         cfg.device = device
         self.cfg = cfg
         # Both change speed, not results: pooling.py, utils/heap.py.
