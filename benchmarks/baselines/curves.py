@@ -11,21 +11,65 @@ row); each carries its own interval, and `--episodes N` keeps only N-seed rows. 
 hours are the trainer's wall clock, pauses and CPU sharing included; with
 `--idle-steps-per-s R` (the rate `bench_train_step.py` measures on an idle CPU) the plots'
 hours axis and a column are idle-CPU hours instead: step / R.
+
+    .venv/bin/python benchmarks/baselines/curves.py --name RUN --files FILE[:STEP] ... \
+        --idle-steps-per-s R
+
+draws the same plot from per-seed `eval_info.json` files (the ones committed under
+`benchmarks/baselines/<task>/`), for runs whose folder is gone: each FILE is one checkpoint,
+its step taken from `step_NNNNNNN` in the name unless given after a colon (e.g. a fine-tune's
+starting weights as step 0).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import re
 from pathlib import Path
 
 from so101_sim.harness.curve import plot_curve, read_curve
+from so101_sim.harness.stats import wilson_interval
 
 HERE = Path(__file__).resolve().parent
 
 
+def rows_from_files(specs: list[str]) -> list[dict]:
+    """Curve rows from per-seed `eval_info.json` files, given as FILE or FILE:STEP."""
+    rows = []
+    for spec in specs:
+        path, _, step = spec.partition(":")
+        if not step:
+            m = re.search(r"step_(\d+)", Path(path).name)
+            if m is None:
+                raise SystemExit(f"--files {spec}: no step_NNNNNNN in its name; give the step "
+                                 f"as {path}:STEP")
+            step = m.group(1)
+        try:
+            info = json.loads(Path(path).read_text())
+            cfg, episodes = info["config"], info["per_episode"]
+        except (OSError, ValueError, KeyError) as e:
+            raise SystemExit(f"--files {path}: not a readable eval_info.json ({e}); pass the "
+                             "per-seed file `so101-sim eval` writes") from None
+        k, n = sum(bool(e["success"]) for e in episodes), len(episodes)
+        modes: dict[str, int] = {}
+        for e in episodes:
+            if not e["success"]:
+                mode = e.get("failure_mode") or "failed"
+                modes[mode] = modes.get(mode, 0) + 1
+        lo, hi = wilson_interval(k, n)
+        rows.append({"task": cfg["task"], "step": int(step), "episodes": n,
+                     "seed_start": cfg["seed_start"], "successes": k, "success": k / n,
+                     "ci95": [lo, hi], "failure_modes": modes, "train_hours": None})
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("runs", nargs="+", type=Path, help="`so101-sim train --out` folders")
+    parser.add_argument("runs", nargs="*", type=Path, help="`so101-sim train --out` folders")
+    parser.add_argument("--files", nargs="+", default=None, metavar="FILE[:STEP]",
+                        help="per-seed eval_info.json files, one per checkpoint, instead of RUNs")
+    parser.add_argument("--name", default=None, help="the run's name for --files")
     parser.add_argument("--episodes", type=int, default=None,
                         help="only curve rows of this many seeds (default: every row)")
     parser.add_argument("--plots", type=Path, default=HERE, help="where the PNGs go")
@@ -44,6 +88,15 @@ def main(argv: list[str] | None = None) -> int:
     def wanted(row: dict) -> bool:
         return args.episodes is None or row.get("episodes") == args.episodes
 
+    curves: list[tuple[str, str, list[dict]]] = []  # (run name, task, rows by step)
+    if args.files:
+        if args.runs or not args.name or not rate:
+            parser.error("--files takes --name and --idle-steps-per-s, and no RUN folders")
+        rows = sorted(rows_from_files(args.files), key=lambda r: r["step"])
+        for task in sorted({r["task"] for r in rows}):
+            curves.append((args.name, task, [r for r in rows if r["task"] == task]))
+    elif not args.runs:
+        parser.error("give RUN folders, or --files with --name")
     for run in args.runs:
         rows = [r for r in read_curve(run, variant=args.variant) if wanted(r)]
         if not rows:
@@ -55,24 +108,26 @@ def main(argv: list[str] | None = None) -> int:
             for r in read_curve(run, task, args.variant):
                 if wanted(r) and r["episodes"] >= best.get(r["step"], {"episodes": 0})["episodes"]:
                     best[r["step"]] = r
-            curve = [best[s] for s in sorted(best)]
-            counts = " or ".join(str(n) for n in sorted({r["episodes"] for r in curve}))
-            for r in curve:
-                r["idle_hours"] = r["step"] / rate / 3600 if rate else None
-            name = f"{run.name}_{task}" + (f"_{args.variant}" if args.variant else "")
-            png = plot_curve(curve, args.plots / f"{name}.png",
-                             hours_key=hours[0], hours_label=hours[1],
-                             title=f"run {run.name}, task {task}"
-                                   + (f" ({args.variant})" if args.variant else "")
-                                   + f": {counts} seeds from {curve[-1]['seed_start']} "
-                                   "per checkpoint")
-            for r in curve:
-                lo, hi = (100 * x for x in r["ci95"])
-                modes = ", ".join(f"{k} {v}" for k, v in sorted(
-                    r["failure_modes"].items(), key=lambda kv: -kv[1])) or "none"
-                print(f"| `{run.name}` | {task} | {r['step']} | {r[hours[0]]:.2f} | "
-                      f"{r['successes']}/{r['episodes']} | {lo:.1f}-{hi:.1f} | {modes} |")
-            print(f"<!-- plot: {png} -->")
+            curves.append((run.name, task, [best[s] for s in sorted(best)]))
+
+    for run_name, task, curve in curves:
+        counts = " or ".join(str(n) for n in sorted({r["episodes"] for r in curve}))
+        for r in curve:
+            r["idle_hours"] = r["step"] / rate / 3600 if rate else None
+        name = f"{run_name}_{task}" + (f"_{args.variant}" if args.variant else "")
+        png = plot_curve(curve, args.plots / f"{name}.png",
+                         hours_key=hours[0], hours_label=hours[1],
+                         title=f"run {run_name}, task {task}"
+                               + (f" ({args.variant})" if args.variant else "")
+                               + f": {counts} seeds from {curve[-1]['seed_start']} "
+                               "per checkpoint")
+        for r in curve:
+            lo, hi = (100 * x for x in r["ci95"])
+            modes = ", ".join(f"{k} {v}" for k, v in sorted(
+                r["failure_modes"].items(), key=lambda kv: -kv[1])) or "none"
+            print(f"| `{run_name}` | {task} | {r['step']} | {r[hours[0]]:.2f} | "
+                  f"{r['successes']}/{r['episodes']} | {lo:.1f}-{hi:.1f} | {modes} |")
+        print(f"<!-- plot: {png} -->")
     return 0
 
 
