@@ -35,3 +35,13 @@ def test_a_file_without_a_step_is_refused_with_the_fix(tmp_path) -> None:
     with pytest.raises(SystemExit, match=r"give the step as .*:STEP"):
         curves.main(["--name", "demo", "--idle-steps-per-s", "0.775", "--plots", str(tmp_path),
                      "--files", str(START)])
+
+
+def test_an_edited_file_is_refused_not_misread(tmp_path) -> None:
+    info = json.loads(START.read_text())
+    info["per_episode"][0]["success"] = "no"  # a string would count as a success if summed
+    bad = tmp_path / "edited_step_0000100.json"
+    bad.write_text(json.dumps(info))
+    with pytest.raises(SystemExit, match=r"per_episode\[0\]\.success"):
+        curves.main(["--name", "demo", "--idle-steps-per-s", "0.775", "--plots", str(tmp_path),
+                     "--files", str(bad)])

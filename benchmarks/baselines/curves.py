@@ -29,6 +29,7 @@ import re
 from pathlib import Path
 
 from so101_sim.harness.curve import plot_curve, read_curve
+from so101_sim.harness.results import check_eval_info
 from so101_sim.harness.stats import wilson_interval
 
 HERE = Path(__file__).resolve().parent
@@ -45,18 +46,15 @@ def rows_from_files(specs: list[str]) -> list[dict]:
                 raise SystemExit(f"--files {spec}: no step_NNNNNNN in its name; give the step "
                                  f"as {path}:STEP")
             step = m.group(1)
-        try:
+        try:  # data, not code: the harness's own checks of an eval_info.json
             info = json.loads(Path(path).read_text())
+            check_eval_info(info, Path(path))
             cfg, episodes = info["config"], info["per_episode"]
+            modes = info["aggregated"]["failure_modes"]  # as the run printed them
         except (OSError, ValueError, KeyError) as e:
             raise SystemExit(f"--files {path}: not a readable eval_info.json ({e}); pass the "
                              "per-seed file `so101-sim eval` writes") from None
-        k, n = sum(bool(e["success"]) for e in episodes), len(episodes)
-        modes: dict[str, int] = {}
-        for e in episodes:
-            if not e["success"]:
-                mode = e.get("failure_mode") or "failed"
-                modes[mode] = modes.get(mode, 0) + 1
+        k, n = sum(e["success"] for e in episodes), len(episodes)
         lo, hi = wilson_interval(k, n)
         rows.append({"task": cfg["task"], "step": int(step), "episodes": n,
                      "seed_start": cfg["seed_start"], "successes": k, "success": k / n,
