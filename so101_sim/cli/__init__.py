@@ -6,6 +6,7 @@ import os
 import sys
 
 from so101_sim.cli.parser import build_parser, parse_camera_map_arg, parse_image_size
+from so101_sim.utils.collector import freeze_for_exit, own_process
 from so101_sim.utils.disk import again_hint, free_space, is_disk_full, set_command
 from so101_sim.workers.ray_connect import CONNECT_TIMEOUT_ENV, signal_exit_code
 
@@ -13,6 +14,8 @@ __all__ = ["build_parser", "main", "parse_camera_map_arg", "parse_image_size"]
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # the process is this command (the entry point), not a caller's call
+        own_process()
     args = build_parser().parse_args(argv)
     set_command(["so101-sim", *(sys.argv[1:] if argv is None else argv)])  # disk-full hint
     if getattr(args, "ray_connect_timeout", None) is not None:  # read by workers.ray_connect
@@ -35,6 +38,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{free_space(exc.filename or '.')} free there; {again_hint('rerun')}",
               file=sys.stderr)
         return 2
+    finally:
+        freeze_for_exit()  # the interpreter's teardown then skips torch's objects
 
 
 if __name__ == "__main__":

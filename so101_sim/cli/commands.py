@@ -79,6 +79,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from so101_sim.harness import evaluate, load_policy
+    from so101_sim.utils.collector import startup_objects
 
     options = {k: v for k, v in (("n_action_steps", args.n_action_steps),
                                  ("num_inference_steps", args.inference_steps),
@@ -87,12 +88,25 @@ def cmd_eval(args: argparse.Namespace) -> int:
                                  ("batch_size", args.policy_batch),
                                  ("precision", args.precision),
                                  ("camera_map", args.camera_map)) if v is not None}
+    suite = "," in args.task or args.task == "all"  # one table over several tasks
     try:
-        if args.device != "cpu" and args.policy != "expert" and ":" not in args.policy:
-            from so101_sim.utils.devices import resolve_device
+        if args.backend == "local" and _loads_checkpoint(args):
+            from so101_sim.harness.warmup import warm_eval_workers
 
-            options["device"] = resolve_device(args.device)
-        if "," in args.task or args.task == "all":  # one table over several tasks
+            # The env workers' fork server imports on the other core while torch and the
+            # policy load here.
+            warm_eval_workers(videos=args.videos > 0, rollouts=args.save_rollouts is not None)
+        with startup_objects():  # torch's and the checkpoint's objects live to the end
+            if args.device != "cpu" and args.policy != "expert" and ":" not in args.policy:
+                from so101_sim.utils.devices import resolve_device
+
+                options["device"] = resolve_device(args.device)
+            if not suite:
+                from so101_sim.harness.compare import load_run
+
+                task = load_run(args.against).task if args.against else args.task
+                policy = load_policy(args.policy, task=task, **options)
+        if suite:
             from so101_sim.harness.suite import evaluate_suite_from_args
 
             evaluate_suite_from_args(args, options)
@@ -104,14 +118,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
                   "faithful": args.faithful}
         if args.against:
             from so101_sim.harness.against import evaluate_against
-            from so101_sim.harness.compare import load_run
 
-            task = load_run(args.against).task
-            evaluate_against(load_policy(args.policy, task=task, **options), args.against,
+            evaluate_against(policy, args.against,
                              margin=args.margin, indifference=args.indifference,
                              alpha=args.alpha, max_episodes=args.max_episodes, **common)
             return 0
-        policy = load_policy(args.policy, task=args.task, **options)
         evaluate(policy, task=args.task, episodes=args.episodes, seed_start=args.seed_start,
                  allow_train_seeds=args.allow_train_seeds, **common)
     except KeyboardInterrupt:
@@ -120,6 +131,24 @@ def cmd_eval(args: argparse.Namespace) -> int:
               "(finish with the same arguments plus --resume)", file=sys.stderr)
         return 130
     return 0
+
+
+def _loads_checkpoint(args: argparse.Namespace) -> bool:
+    """Whether ``so101-sim eval`` will load a lerobot checkpoint that is there: a directory,
+    or the shipped one for a single task. Anything else fails or runs without the warm-up,
+    whose GL line would only come before the error."""
+    text = args.policy
+    if text == "baseline":
+        if "," in args.task or args.task == "all" or args.against:
+            return False
+        from so101_sim.harness.baselines import baseline_checkpoint
+        from so101_sim.tasks import load_task
+
+        try:
+            text = str(baseline_checkpoint(load_task(args.task)))
+        except (ValueError, FileNotFoundError):
+            return False
+    return (Path(text).expanduser() / "config.json").is_file()
 
 
 def cmd_curve(args: argparse.Namespace) -> int:

@@ -38,6 +38,7 @@ from so101_sim.harness.results import (
     lock_eval_folders,
     per_episode,
 )
+from so101_sim.harness.warmup import worker_preload
 from so101_sim.tasks import TaskSpec, load_task, task_ref
 from so101_sim.utils.devices import eval_policy_threads, torch_threads
 from so101_sim.utils.locks import lock_scope
@@ -258,9 +259,11 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
         from so101_sim.sim.rendering import select_gl_backend
 
         select_gl_backend()  # choose (and print) once here: workers inherit MUJOCO_GL
+    preload = worker_preload(resize=cfg.resize_to is not None, rollouts=sink is not None,
+                             videos=videos > 0)
     pool = start_pool(cfg, min(n_envs, len(todo)), backend=backend, ray_address=ray_address,
-                      name="so101-eval-worker", preload=_preload(cfg, sink is not None, videos > 0),
-                      timeout_s=worker_timeout_s, log=log)
+                      name="so101-eval-worker", preload=preload, timeout_s=worker_timeout_s,
+                      log=log)
     slots = [_Slot() for _ in range(pool.size)]
     # Rows per policy forward: the policy's own batch size (LeRobotPolicy pads to it), else all.
     batch = max(1, int(getattr(policy, "batch_size", 0) or pool.size))
@@ -371,19 +374,6 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
         pool.close()
         bar.close()
     return n_run, workers, forwards.peak
-
-
-def _preload(cfg: EnvWorkerConfig, rollouts: bool, videos: bool) -> tuple[str, ...]:
-    """Modules the fork server imports once for every worker (torch for in-worker resizes;
-    the video writer's cv2 and imageio, about 0.06 s a worker, when any episode is filmed)."""
-    mods = ["so101_sim.sim.env"]
-    if videos:
-        mods.append("so101_sim.harness.video")
-    if cfg.resize_to is not None:
-        mods.append("so101_sim.utils.image_pipeline")
-    if rollouts:
-        mods += ["so101_sim.harness.rollout_tape", "lerobot.datasets.video_utils"]
-    return tuple(mods)
 
 
 def _save_video(path: str | None, mp4: bytes | None) -> str | None:

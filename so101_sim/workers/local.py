@@ -52,6 +52,20 @@ def _serve(conn: Connection, factory: Callable[[], Any]) -> None:
                 close()
 
 
+def start_fork_server(preload: tuple[str, ...]) -> None:
+    """Start this process's fork server now, importing `preload`, without waiting for it.
+
+    A caller that knows it will start workers later can let the server import while it does
+    its own start-up. The server and its modules are then fixed for the process: a later
+    pool's preload is not imported by the server (its workers import what they lack), and
+    workers inherit the environment as it is now.
+    """
+    from multiprocessing import forkserver
+
+    mp.get_context("forkserver").set_forkserver_preload(list(preload))
+    forkserver.ensure_running()
+
+
 class LocalPool(WorkerPool):
     """N forkserver processes, one service each."""
 

@@ -1,0 +1,102 @@
+"""The eval command's start-up: the collector paused and frozen in a process so101-sim owns,
+and the env workers' fork server started while the checkpoint loads."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+COLLECTOR = textwrap.dedent("""
+    import gc, json, sys, weakref
+    from so101_sim.utils.collector import freeze_for_exit, own_process, startup_objects
+
+    class Node:
+        pass
+
+    def cycle():  # garbage only the cyclic collector can free
+        a, b = Node(), Node()
+        a.b, b.a = b, a
+        return weakref.ref(a)
+
+    out = {"frozen_before": gc.get_freeze_count()}
+    if sys.argv[1] == "owned":
+        own_process()
+    with startup_objects():
+        out["enabled_inside"] = gc.isenabled()
+        dead = cycle()
+        keep = [Node() for _ in range(1000)]
+    out["cycle_collected"] = dead() is None
+    out["enabled_after"] = gc.isenabled()
+    out["frozen"] = gc.get_freeze_count()
+    freeze_for_exit()
+    out["frozen_at_exit"] = gc.get_freeze_count()
+    print(json.dumps(out))
+""")
+
+
+def _run(code: str, *args: str, env: dict | None = None) -> dict:
+    out = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
+                         timeout=300, env=env)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_an_owned_process_freezes_what_start_up_made_and_still_collects_its_garbage():
+    owned = _run(COLLECTOR, "owned")
+    assert owned["enabled_inside"] is False  # paused while the block imports and loads
+    assert owned["enabled_after"] is True
+    assert owned["cycle_collected"] is True  # the one collection at the end frees garbage
+    assert owned["frozen"] > owned["frozen_before"] + 1000  # the survivors, Nodes and all
+    assert owned["frozen_at_exit"] >= owned["frozen"]
+
+
+def test_a_library_caller_keeps_its_collector_untouched():
+    plain = _run(COLLECTOR, "library")
+    assert plain["enabled_inside"] is True
+    assert plain["frozen"] == plain["frozen_at_exit"] == plain["frozen_before"]
+
+
+WARM = textwrap.dedent("""
+    import json, os, sys
+    sys.path.insert(0, sys.argv[1])
+    from so101_sim.harness.warmup import warm_eval_workers
+    from so101_sim.workers import start_pool
+    from probe_service import ProbeFactory
+
+    assert "MUJOCO_GL" not in os.environ
+    warmed = warm_eval_workers(videos=False)
+    with start_pool(ProbeFactory(), 1, name="test-probe") as pool:  # no preload of its own
+        pool.submit(0, "probe")
+        (reply,) = pool.collect()
+    print(json.dumps({"warmed": warmed, "parent_gl": os.environ.get("MUJOCO_GL"),
+                      "worker": reply.value}))
+""")
+
+PROBE = textwrap.dedent("""
+    import os, sys
+
+    class Probe:
+        def probe(self):
+            return {"gl": os.environ.get("MUJOCO_GL"),
+                    "modules": [m for m in ("so101_sim.sim.env", "so101_sim.utils.image_pipeline",
+                                            "torch") if m in sys.modules]}
+
+    class ProbeFactory:
+        def __call__(self):
+            return Probe()
+""")
+
+
+def test_the_fork_server_started_early_passes_its_gl_choice_and_imports_to_workers(tmp_path):
+    (tmp_path / "probe_service.py").write_text(PROBE)
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+    out = _run(WARM, str(tmp_path), env=env)
+    assert out["warmed"] is True
+    assert out["parent_gl"] in ("egl", "osmesa")
+    # The worker sees the backend chosen before the server started, and the server's imports.
+    assert out["worker"]["gl"] == out["parent_gl"]
+    assert out["worker"]["modules"] == ["so101_sim.sim.env", "so101_sim.utils.image_pipeline",
+                                        "torch"]
