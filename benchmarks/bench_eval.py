@@ -24,6 +24,11 @@ McNemar p). (d) with --bf16, run (a) against the same with `--precision bf16`, l
 undone (torch's own max-pooling kernel instead of harness.policies.pooling's channels-last
 one, glibc's default heap instead of utils.heap's), likewise, and count the episodes whose
 actions differ (their digests): there should be none.
+(f) with --startup R, only this: R rounds of `so101-sim eval` as shipped against the same
+command with its start-up speed-ups undone (no early fork server from harness.warmup, and
+the collector left as it is: main() called as a library, so utils.collector does nothing),
+alternating, on the same seeds: each wall, the medians, their ratio, and the episodes whose
+actions differ (none expected: only start-up and exit change).
 Without a checkpoint a tiny untrained DiffusionPolicy is built (tests/tiny_policy.py): it fails
 every episode, so only the timings mean anything.
 """
@@ -71,10 +76,18 @@ PLAIN_KERNELS = (
     "from so101_sim.cli import main; sys.argv[0] = 'so101-sim'; sys.exit(main())")
 
 
+#: `so101-sim` without its start-up speed-ups, for (f): no early fork server, and main()
+#: called with its arguments as a library would, so it does not own the process's collector.
+PLAIN_STARTUP = (
+    "import sys; import so101_sim.harness.warmup as w; w.warm_eval_workers = lambda **k: False; "
+    "from so101_sim.cli import main; sys.exit(main(sys.argv[1:]))")
+
+
 def run_harness(ckpt: Path, out: Path, episodes: int, n_envs: int, videos: int,
                 image_size: tuple[int, int] | None, task: str,
-                flags: tuple[str, ...] = (), plain: bool = False) -> tuple[float, dict]:
-    exe = [sys.executable, "-c", PLAIN_KERNELS] if plain else [str(BIN / "so101-sim")]
+                flags: tuple[str, ...] = (), plain: bool | str = False) -> tuple[float, dict]:
+    exe = ([sys.executable, "-c", PLAIN_STARTUP] if plain == "startup" else
+           [sys.executable, "-c", PLAIN_KERNELS] if plain else [str(BIN / "so101-sim")])
     cmd = [*exe, "eval", "--policy", str(ckpt), "--task", task,
            "--episodes", str(episodes), "--n-envs", str(n_envs), "--videos", str(videos),
            "--out", str(out), *flags]
@@ -130,6 +143,9 @@ def main() -> None:
                         help="run (c): the default render path against --faithful")
     parser.add_argument("--plain-kernels", action="store_true",
                         help="(e): also run (a) without the exact speed-ups, same seeds")
+    parser.add_argument("--startup", type=int, default=0, metavar="R",
+                        help="run only (f): R alternating rounds with and without the "
+                             "start-up speed-ups")
     parser.add_argument("--bf16", action="store_true",
                         help="run (d): fp32 forwards against --precision bf16")
     parser.add_argument("--quick", action="store_true",
@@ -164,6 +180,9 @@ def main() -> None:
     size = parse_image_size(args.image_size) if args.image_size else None
 
     n, k = args.episodes, args.n_envs
+    if args.startup:
+        startup_rounds(args.startup, ckpt, work, n, k, task)
+        return
     wall, agg = run_harness(ckpt, work / "harness_a", n, k, 2, size, task)
     t = agg["time"]
     print(f"(a) harness, {n} episodes, {k} envs: wall {wall:.1f} s ({wall / n:.2f} s/episode, "
@@ -225,6 +244,29 @@ def compare_variant(label: str, name: str, wall_a: float, ckpt: Path, work: Path
         for run in ("harness_a", f"variant_{name}")]
     differ = sum(digests[0][s] != digests[1].get(s) for s in digests[0])
     print(f"    episodes whose actions differ (digests): {differ} of {len(digests[0])}")
+
+
+def startup_rounds(rounds: int, ckpt: Path, work: Path, n: int, k: int, task: str) -> None:
+    """(f): `rounds` alternating pairs, as shipped and with the start-up speed-ups undone."""
+    import statistics
+
+    walls: dict[str, list[float]] = {"as shipped": [], "start-up undone": []}
+    digests: dict[str, set[str]] = {name: set() for name in walls}
+    for r in range(rounds):
+        for name, plain in (("start-up undone", "startup"), ("as shipped", False)):
+            out = work / f"startup_{'plain' if plain else 'shipped'}_{r}"
+            wall, agg = run_harness(ckpt, out, n, k, 2, None, task, plain=plain)
+            walls[name].append(wall)
+            per = json.loads((out / "eval_info.json").read_text())["per_episode"]
+            digests[name].add(json.dumps(sorted((e["seed"], e["actions_sha"]) for e in per)))
+            print(f"    round {r + 1}: {name:15s} {wall:6.1f} s (loop {agg['eval_s']:.1f} s), "
+                  f"success {agg['n_success']}/{n}", flush=True)
+    med = {name: statistics.median(w) for name, w in walls.items()}
+    print(f"(f) {n} episodes, {k} envs, {rounds} alternating rounds: as shipped "
+          f"{med['as shipped']:.1f} s against {med['start-up undone']:.1f} s undone (medians), "
+          f"{med['start-up undone'] / med['as shipped']:.2f}x; the same actions in every run: "
+          f"{len(digests['as shipped'] | digests['start-up undone']) == 1}")
+
 
 if __name__ == "__main__":
     main()
