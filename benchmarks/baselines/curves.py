@@ -28,9 +28,8 @@ import json
 import re
 from pathlib import Path
 
-from so101_sim.harness.curve import plot_curve, read_curve
+from so101_sim.harness.curve import curve_row, plot_curve, read_curve
 from so101_sim.harness.results import check_eval_info
-from so101_sim.harness.stats import wilson_interval
 
 HERE = Path(__file__).resolve().parent
 
@@ -54,11 +53,8 @@ def rows_from_files(specs: list[str]) -> list[dict]:
         except (OSError, ValueError, KeyError) as e:
             raise SystemExit(f"--files {path}: not a readable eval_info.json ({e}); pass the "
                              "per-seed file `so101-sim eval` writes") from None
-        k, n = sum(e["success"] for e in episodes), len(episodes)
-        lo, hi = wilson_interval(k, n)
-        rows.append({"task": cfg["task"], "step": int(step), "episodes": n,
-                     "seed_start": cfg["seed_start"], "successes": k, "success": k / n,
-                     "ci95": [lo, hi], "failure_modes": modes, "train_hours": None})
+        rows.append(curve_row(cfg["task"], int(step), sum(e["success"] for e in episodes),
+                              len(episodes), cfg["seed_start"], modes))
     return rows
 
 

@@ -105,15 +105,22 @@ def _evaluate_missing(run: Path, checkpoints: list[tuple[int, Path]], episodes: 
                           seed_start=seed_start, out_dir=out, videos=0, resume=out.exists(),
                           progress=progress, report=False)
         agg = result["aggregated"]
-        k = round(agg["pc_success"] * episodes / 100)
-        lo, hi = wilson_interval(k, episodes)
-        row = {"task": task, "step": step,
-               "train_hours": round(info.get("train_wall_s", 0) / 3600, 3),
-               "episodes": episodes, "seed_start": seed_start, "successes": k,
-               "success": k / episodes, "ci95": [round(lo, 4), round(hi, 4)],
-               "failure_modes": agg.get("failure_modes", {}),
-               **({"variant": variant} if variant else {})}
+        row = curve_row(task, step, round(agg["pc_success"] * episodes / 100), episodes,
+                        seed_start, agg.get("failure_modes", {}),
+                        train_hours=round(info.get("train_wall_s", 0) / 3600, 3),
+                        variant=variant)
         append_line(run / CURVE_FILE, json.dumps(row))
+
+
+def curve_row(task: str, step: int, successes: int, episodes: int, seed_start: int,
+              failure_modes: dict[str, int], train_hours: float | None = None,
+              variant: str = "") -> dict[str, Any]:
+    """One checkpoint's line of ``eval_curve.jsonl``: its count with the Wilson interval."""
+    lo, hi = wilson_interval(successes, episodes)
+    return {"task": task, "step": step, "train_hours": train_hours, "episodes": episodes,
+            "seed_start": seed_start, "successes": successes,
+            "success": successes / episodes, "ci95": [round(lo, 4), round(hi, 4)],
+            "failure_modes": failure_modes, **({"variant": variant} if variant else {})}
 
 
 def widest_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
