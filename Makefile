@@ -40,7 +40,7 @@ demo: $(STAMP)
 	@# The main job: the shipped diffusion checkpoint closed-loop (the expert until one ships).
 	rm -rf outputs/eval/demo
 	@if [ -f $(SHIPPED)/model.safetensors ]; then \
-		$(VENV)/bin/so101-sim eval --policy $(SHIPPED) --episodes 20 --n-envs 8 --videos 2 \
+		$(VENV)/bin/so101-sim eval --policy $(SHIPPED) --episodes 20 --n-envs 16 --videos 2 \
 			--out outputs/eval/demo; \
 	else \
 		echo "no shipped checkpoint in $(SHIPPED): evaluating the scripted expert"; \

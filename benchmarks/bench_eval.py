@@ -4,6 +4,8 @@
     .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --compare-lerobot
     .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --paths --bf16 --episodes 200
     .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --plain-kernels --episodes 200
+    .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --startup 3 --episodes 16
+    .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --tail 2 --episodes 48 --n-envs 12
     .venv/bin/python benchmarks/bench_eval.py --quick          # tiny untrained checkpoint
 
 (a) `so101-sim eval` on N episodes with K env workers: wall time and the physics / render /
@@ -29,6 +31,11 @@ command with its start-up speed-ups undone (no early fork server from harness.wa
 the collector left as it is: main() called as a library, so utils.collector does nothing),
 alternating, on the same seeds: each wall, the medians, their ratio, and the episodes whose
 actions differ (none expected: only start-up and exit change).
+(g) with --tail R, only this: R rounds as shipped against the same command with the
+forward scheduling of before 2026-12-01 (a short batch waited for the forward in flight
+instead of taking the free forward thread, and a second forward thread only with twice the
+rows of one forward in envs), alternating, likewise. Exact too: every row is padded to the
+same batch on one thread either way.
 Without a checkpoint a tiny untrained DiffusionPolicy is built (tests/tiny_policy.py): it fails
 every episode, so only the timings mean anything.
 """
@@ -83,11 +90,23 @@ PLAIN_STARTUP = (
     "from so101_sim.cli import main; sys.exit(main(sys.argv[1:]))")
 
 
+#: `so101-sim` with the forward scheduling of before 2026-12-01, for (g).
+PLAIN_TAIL = (
+    "import sys; from so101_sim.harness.forwards import Forwards as F; "
+    "F.pair_helps = staticmethod(lambda envs, batch: envs >= 2 * batch); "
+    "F.should_launch = lambda self, waiting, batch, envs_stepping: bool(waiting) and "
+    "self.can_launch() and (waiting >= batch or (not envs_stepping and not self.inflight)); "
+    "from so101_sim.cli import main; sys.argv[0] = 'so101-sim'; sys.exit(main())")
+
+#: The undone variants of (e), (f) and (g): a name for output folders, and the script.
+PLAIN = {"kernels": PLAIN_KERNELS, "startup": PLAIN_STARTUP, "tail": PLAIN_TAIL}
+
+
 def run_harness(ckpt: Path, out: Path, episodes: int, n_envs: int, videos: int,
                 image_size: tuple[int, int] | None, task: str,
                 flags: tuple[str, ...] = (), plain: bool | str = False) -> tuple[float, dict]:
-    exe = ([sys.executable, "-c", PLAIN_STARTUP] if plain == "startup" else
-           [sys.executable, "-c", PLAIN_KERNELS] if plain else [str(BIN / "so101-sim")])
+    exe = ([sys.executable, "-c", PLAIN["kernels" if plain is True else plain]] if plain
+           else [str(BIN / "so101-sim")])
     cmd = [*exe, "eval", "--policy", str(ckpt), "--task", task,
            "--episodes", str(episodes), "--n-envs", str(n_envs), "--videos", str(videos),
            "--out", str(out), *flags]
@@ -146,6 +165,9 @@ def main() -> None:
     parser.add_argument("--startup", type=int, default=0, metavar="R",
                         help="run only (f): R alternating rounds with and without the "
                              "start-up speed-ups")
+    parser.add_argument("--tail", type=int, default=0, metavar="R",
+                        help="only (g): R alternating rounds, as shipped and with the forward "
+                             "scheduling of before")
     parser.add_argument("--bf16", action="store_true",
                         help="run (d): fp32 forwards against --precision bf16")
     parser.add_argument("--quick", action="store_true",
@@ -180,8 +202,9 @@ def main() -> None:
     size = parse_image_size(args.image_size) if args.image_size else None
 
     n, k = args.episodes, args.n_envs
-    if args.startup:
-        startup_rounds(args.startup, ckpt, work, n, k, task)
+    if args.startup or args.tail:
+        ab_rounds(args.startup or args.tail, "startup" if args.startup else "tail", ckpt,
+                  work, n, k, task)
         return
     wall, agg = run_harness(ckpt, work / "harness_a", n, k, 2, size, task)
     t = agg["time"]
@@ -246,26 +269,41 @@ def compare_variant(label: str, name: str, wall_a: float, ckpt: Path, work: Path
     print(f"    episodes whose actions differ (digests): {differ} of {len(digests[0])}")
 
 
-def startup_rounds(rounds: int, ckpt: Path, work: Path, n: int, k: int, task: str) -> None:
-    """(f): `rounds` alternating pairs, as shipped and with the start-up speed-ups undone."""
+def ab_rounds(rounds: int, kind: str, ckpt: Path, work: Path, n: int, k: int,
+              task: str) -> None:
+    """(f) or (g): `rounds` alternating pairs, as shipped and with `kind`'s speed-up undone."""
     import statistics
 
-    walls: dict[str, list[float]] = {"as shipped": [], "start-up undone": []}
+    undone = {"startup": "start-up undone", "tail": "scheduling undone"}[kind]
+    walls: dict[str, list[float]] = {"as shipped": [], undone: []}
     digests: dict[str, set[str]] = {name: set() for name in walls}
+    idles: dict[str, list[float]] = {name: [] for name in walls}
     for r in range(rounds):
-        for name, plain in (("start-up undone", "startup"), ("as shipped", False)):
-            out = work / f"startup_{'plain' if plain else 'shipped'}_{r}"
+        for name, plain in ((undone, kind), ("as shipped", False)):
+            out = work / f"{kind}_{'plain' if plain else 'shipped'}_{r}"
+            idle0 = idle_core_s()
             wall, agg = run_harness(ckpt, out, n, k, 2, None, task, plain=plain)
+            idle = idle_core_s() - idle0
             walls[name].append(wall)
+            idles[name].append(idle)
             per = json.loads((out / "eval_info.json").read_text())["per_episode"]
             digests[name].add(json.dumps(sorted((e["seed"], e["actions_sha"]) for e in per)))
-            print(f"    round {r + 1}: {name:15s} {wall:6.1f} s (loop {agg['eval_s']:.1f} s), "
-                  f"success {agg['n_success']}/{n}", flush=True)
+            print(f"    round {r + 1}: {name:17s} {wall:6.1f} s (loop {agg['eval_s']:.1f} s), "
+                  f"success {agg['n_success']}/{n}, cores idle {idle:.1f} core-s", flush=True)
     med = {name: statistics.median(w) for name, w in walls.items()}
-    print(f"(f) {n} episodes, {k} envs, {rounds} alternating rounds: as shipped "
-          f"{med['as shipped']:.1f} s against {med['start-up undone']:.1f} s undone (medians), "
-          f"{med['start-up undone'] / med['as shipped']:.2f}x; the same actions in every run: "
-          f"{len(digests['as shipped'] | digests['start-up undone']) == 1}")
+    idle_med = {name: statistics.median(w) for name, w in idles.items()}
+    print(f"({'f' if kind == 'startup' else 'g'}) {n} episodes, {k} envs, {rounds} alternating "
+          f"rounds: as shipped {med['as shipped']:.1f} s against {med[undone]:.1f} s "
+          f"{undone.split()[-1]} (medians), {med[undone] / med['as shipped']:.2f}x; the same "
+          f"actions in every run: {len(digests['as shipped'] | digests[undone]) == 1}; "
+          f"cores idle {idle_med['as shipped']:.1f} against {idle_med[undone]:.1f} core-s")
+
+
+def idle_core_s() -> float:
+    """Idle (and I/O wait) time of all cores so far, from /proc/stat: what a run leaves
+    unused shows up here whatever the machine's speed that minute."""
+    fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()
+    return (int(fields[4]) + int(fields[5])) / os.sysconf("SC_CLK_TCK")
 
 
 if __name__ == "__main__":

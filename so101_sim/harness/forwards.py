@@ -53,8 +53,23 @@ class Forwards:
         """A handle that turns readable when a forward finishes (None: nothing in flight)."""
         return self._wake_r if self.inflight and self._executor is not None else None
 
+    @staticmethod
+    def pair_helps(envs: int, batch: int) -> bool:
+        """Can a second forward in flight do anything? Only with more envs than one holds."""
+        return envs > batch
+
     def can_launch(self) -> bool:
         return len(self.inflight) < self.limit
+
+    def should_launch(self, waiting: int, batch: int, envs_stepping: bool) -> bool:
+        """Launch a forward for the `waiting` rows now? When it is full; or when no env is
+        stepping, since then no row can join it before a forward in flight ends: a free
+        forward thread takes the short batch at once (padded, so every row's arithmetic is
+        the same) rather than leave its core idle, as it would while fewer envs are live than
+        two forwards hold, at the end of a run or with fewer envs than that."""
+        if not waiting or not self.can_launch():
+            return False
+        return waiting >= batch or not envs_stepping
 
     def launch(self, requests: list, tokens: list) -> None:
         """Start a forward for `requests`; `tokens` come back with its actions."""

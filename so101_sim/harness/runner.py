@@ -342,7 +342,8 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                 pool.submit(r.slot, "act", actions[j])
 
     # Two forwards in flight where the policy allows it (harness.forwards); else one.
-    forwards = Forwards(policy, concurrent=backend == "local" and pool.size >= 2 * batch
+    forwards = Forwards(policy, concurrent=backend == "local"
+                        and Forwards.pair_helps(pool.size, batch)
                         and bool(getattr(policy, "concurrent_forwards", False)))
     try:
         while todo or any(s.seed is not None for s in slots):
@@ -356,10 +357,9 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                     policy.start_episode(i, seed)
                     pool.submit(i, "reset", seed, slots[i].video is not None)
             forward_done()
-            # A forward as soon as it is full (or nothing else can arrive): with more envs than
-            # rows per forward, the other envs step and render while the policy runs.
-            if forwards.can_launch() and (len(waiting) >= batch or (
-                    waiting and not pool.busy and not forwards.inflight)):
+            # A forward as soon as it is full (or no env is stepping, so no row can join it):
+            # with more envs than rows per forward, the others step while the policy runs.
+            if forwards.should_launch(len(waiting), batch, envs_stepping=pool.busy > 0):
                 ready = [waiting.popleft() for _ in range(min(batch, len(waiting)))]
                 forwards.launch([ChunkRequest(i, slots[i].seed, list(slots[i].history))
                                  for i in ready], [slots[i] for i in ready])
