@@ -93,5 +93,5 @@ def test_shipped_policy_success_rate_regression(task: str, folder: Path) -> None
                     "to test against; re-export with a policy that succeeds")
     n = seeds_for(baseline)
     check = assert_success_rate(str(folder), task=task, baseline=baseline, episodes=n,
-                                n_envs=8, seed_start=info["config"]["seed_start"])
+                                n_envs=16, seed_start=info["config"]["seed_start"])
     assert check.n == n

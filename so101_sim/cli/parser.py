@@ -186,7 +186,8 @@ def build_parser() -> argparse.ArgumentParser:
     cu.add_argument("--episodes", type=int, default=32, help="seeds per checkpoint")
     cu.add_argument("--every", type=int, default=0,
                     help="only checkpoints whose step is a multiple of this (default: all)")
-    cu.add_argument("--n-envs", type=int, default=8)
+    cu.add_argument("--n-envs", type=int, default=16,
+                    help="env workers per checkpoint (default 16, as eval: two forwards of 8)")
     cu.add_argument("--seed-start", type=int, default=100_000)
     cu.add_argument("--steps", default=None, type=parse_steps,
                     help="only these checkpoint steps, comma-separated (e.g. 8000,12000)")

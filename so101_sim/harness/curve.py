@@ -65,7 +65,7 @@ def read_curve(run: Path, task: str | None = None,
     return sorted(rows, key=lambda r: r["step"])
 
 
-def evaluate_curve(run: str | Path, *, episodes: int = 32, every: int = 0, n_envs: int = 8,
+def evaluate_curve(run: str | Path, *, episodes: int = 32, every: int = 0, n_envs: int = 16,
                    seed_start: int = 100_000, steps: list[int] | None = None,
                    task: str = DEFAULT_TASK, progress: bool = True,
                    policy_options: dict[str, Any] | None = None) -> list[dict[str, Any]]:
