@@ -94,7 +94,7 @@ def test_shipped_policy_success_rate_regression(task: str, folder: Path) -> None
     n = seeds_for(baseline)
     # 8 envs, one forward at a time: CI runs two tests at once, so a second forward thread
     # only competes with the other test, and more episodes in flight are lost at the early
-    # stop (16 envs: 145 s against 185 s alone, but 583 against <= 371 s of test time in CI).
+    # stop (16 envs: 145 s against 185 s alone, but 583 against <= 464 s of test time in CI).
     check = assert_success_rate(str(folder), task=task, baseline=baseline, episodes=n,
                                 n_envs=8, seed_start=info["config"]["seed_start"])
     assert check.n == n
