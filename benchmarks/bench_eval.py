@@ -32,7 +32,7 @@ the collector left as it is: main() called as a library, so utils.collector does
 alternating, on the same seeds: each wall, the medians, their ratio, and the episodes whose
 actions differ (none expected: only start-up and exit change).
 (g) with --tail R, only this: R rounds as shipped against the same command with the
-forward scheduling of before 2026-12-01 (a short batch waited for the forward in flight
+forward scheduling of before commit 537fdba (a short batch waited for the forward in flight
 instead of taking the free forward thread, and a second forward thread only with twice the
 rows of one forward in envs), alternating, likewise. Exact too: every row is padded to the
 same batch on one thread either way.
@@ -90,7 +90,7 @@ PLAIN_STARTUP = (
     "from so101_sim.cli import main; sys.exit(main(sys.argv[1:]))")
 
 
-#: `so101-sim` with the forward scheduling of before 2026-12-01, for (g).
+#: `so101-sim` with the forward scheduling of before commit 537fdba, for (g).
 PLAIN_TAIL = (
     "import sys; from so101_sim.harness.forwards import Forwards as F; "
     "F.pair_helps = staticmethod(lambda envs, batch: envs >= 2 * batch); "
@@ -98,7 +98,7 @@ PLAIN_TAIL = (
     "self.can_launch() and (waiting >= batch or (not envs_stepping and not self.inflight)); "
     "from so101_sim.cli import main; sys.argv[0] = 'so101-sim'; sys.exit(main())")
 
-#: The undone variants of (e), (f) and (g): a name for output folders, and the script.
+#: The script of each undone variant: (e) kernels, (f) startup, (g) tail.
 PLAIN = {"kernels": PLAIN_KERNELS, "startup": PLAIN_STARTUP, "tail": PLAIN_TAIL}
 
 
@@ -176,6 +176,8 @@ def main() -> None:
                         help="cut episodes to this many steps (a shorter task file)")
     parser.add_argument("--out", default=None, help="folder for the runs (default: a temp dir)")
     args = parser.parse_args()
+    if args.startup and args.tail:
+        parser.error("--startup and --tail each run their own rounds; give one of them")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("MUJOCO_GL", "egl")
     # Both commands run with the caller's OpenMP settings (libgomp's default unless set): the
