@@ -48,12 +48,13 @@ demo: $(STAMP)
 			--out outputs/eval/demo; fi
 
 # Two pytest workers: most tests wait on one single-threaded start-up (imports, spawning env
-# workers), so one worker leaves a core idle about half the time. The Ray tests share one
-# worker (group "ray"): a second local cluster would join the first.
+# workers), so one worker leaves a core idle about half the time. Each worker takes whole test
+# modules, the longest first (tests/conftest.py), so module fixtures are built once; the Ray
+# modules go to one worker together: a second local cluster would join the first.
 TEST_WORKERS ?= 2
 
 test: $(STAMP)
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadscope
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_env.py

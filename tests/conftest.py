@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 # A test run started in the background without job control (`nohup make test &`) inherits an
@@ -38,9 +39,57 @@ def state_env():
     env.close()
 
 
+# Seconds each module took in one `make test` (2026-11-30, 2 workers, 1659 s in all). Only the
+# order of the work depends on them: the longest modules start first, so the two workers end
+# together (longest-first scheduling). A module not listed runs after these.
+MODULE_SECONDS = {
+    "test_shipped_policy": 205, "test_full_disk": 153, "test_training": 152,
+    "test_lerobot_robot": 141, "test_durability": 128, "test_ray_backend": 110,
+    "test_recording": 109, "test_ray_cluster": 96, "test_harness": 67, "test_save_rollouts": 66,
+    "test_ray_unreachable": 56, "test_gpu_scripts": 45, "test_locks": 42, "test_against": 29,
+    "test_lerobot_zero_flags": 28, "test_policy_classes": 23, "test_exact_speedups": 22,
+    "test_grasp_trace": 19, "test_explain": 18, "test_testing": 17, "test_augment": 16,
+    "test_wrist": 14, "test_bad_input": 13, "test_baselines": 13,
+}
+
+
+def work_unit(nodeid: str) -> str:
+    """What one xdist worker runs as a whole: a test module, so its module-scoped fixtures
+    are built once; and every Ray module together ("ray"), since a second local Ray runtime
+    on this machine would join the first instead of starting its own."""
+    path = nodeid.split("::", 1)[0]
+    return "ray" if Path(path).name.startswith("test_ray_") else path
+
+
+def _unit_seconds() -> dict[str, float]:
+    seconds: dict[str, float] = {}
+    for module, s in MODULE_SECONDS.items():
+        unit = work_unit(f"tests/{module}.py")
+        seconds[unit] = seconds.get(unit, 0) + s
+    return seconds
+
+
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Keep every Ray test on one xdist worker (`make test` runs `--dist loadgroup`): a second
-    local Ray runtime on this machine would join the first instead of starting its own."""
-    for item in items:
-        if item.path.name.startswith("test_ray_"):
-            item.add_marker(pytest.mark.xdist_group("ray"))
+    """Longest work units first, each unit's tests together and in file order."""
+    seconds = _unit_seconds()
+    first = {}
+    for i, item in enumerate(items):
+        first.setdefault(work_unit(item.nodeid), i)
+    items.sort(key=lambda it: (-seconds.get(work_unit(it.nodeid), 0),
+                               first[work_unit(it.nodeid)]))
+
+
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist, when installed
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | None:
+    """`--dist loadscope` (what `make test` runs) hands out `work_unit`s, in collection order."""
+    if config.getvalue("dist") != "loadscope":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ByWorkUnit(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return work_unit(nodeid)
+
+    config.option.loadscopereorder = False  # keep the longest-first order above
+    return ByWorkUnit(config, log)

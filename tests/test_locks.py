@@ -1,16 +1,18 @@
 """Two runs, one folder: the second is refused in one line naming the folder and the holder.
 
 Every command that writes a folder (eval --out, eval --save-rollouts, record, train, curve,
-export, explain) holds an flock on a lock file in it. Each pair below is started together as
-two processes (``SO101_SIM_LOCK_PAUSE_S`` makes the winner hold its lock a few seconds before
-it goes on, so the two surely overlap); exactly one runs, the other exits 2 with one line. A
-refused run changes nothing in the folder, and a SIGKILLed holder blocks nobody.
+export, explain) holds an flock on a lock file in it. Two processes started together
+(``SO101_SIM_LOCK_PAUSE_S`` makes the winner hold its lock a few seconds before it goes on, so
+the two surely overlap): exactly one runs, the other exits 2 with one line. Every command run
+while another process holds its folder exits 2 with that line and changes nothing in the
+folder, and a SIGKILLed holder blocks nobody.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -20,6 +22,8 @@ from pathlib import Path
 import pytest
 from test_training import _tiny_preset
 
+from so101_sim.cli import main
+from so101_sim.harness.curve import CURVE_LOCK
 from so101_sim.record import record
 from so101_sim.train import train
 from so101_sim.utils.locks import LOCK_FILE, PAUSE_ENV, FolderInUseError, FolderLock
@@ -70,8 +74,13 @@ def _start(argv: list[str], env: dict[str, str]) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
 
 
-@pytest.mark.parametrize("name", ["eval --out", "eval --save-rollouts", "record", "train",
-                                  "curve", "export", "explain"])
+COMMANDS = ["eval --out", "eval --save-rollouts", "record", "train", "curve", "export",
+            "explain"]
+
+
+# Two processes that start together race for the lock; the lock is the same `FolderLock` in
+# every command, so the race runs for two of them, and every command is refused below.
+@pytest.mark.parametrize("name", ["eval --out", "train"])
 def test_two_runs_started_together_one_is_refused(material, tmp_path: Path, name: str) -> None:
     first, second, folder = _commands(material, tmp_path)[name]
     env = {**ENV, PAUSE_ENV: "6"}
@@ -109,25 +118,38 @@ def _kill(proc: subprocess.Popen) -> None:
     proc.wait(timeout=60)
 
 
-@pytest.mark.parametrize("name", ["eval --out", "record", "train"])
-def test_a_refused_run_changes_nothing_in_the_folder(material, tmp_path: Path,
-                                                     name: str) -> None:
-    first, _, folder = _commands(material, tmp_path)[name]
-    folder.mkdir(parents=True)
+@pytest.mark.parametrize("name", COMMANDS)
+def test_a_refused_run_changes_nothing_in_the_folder(material, tmp_path: Path, name: str,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """Each command, run in this process while another process holds its folder: exit 2, one
+    line naming the holder, and not a byte changed in the folder."""
+    # curve's lock is its own (a curve may run beside the training); an export replaces its
+    # folder whole, so its lock lives beside it
+    lock = {"export": ".export.export.lock"}.get(name, LOCK_FILE)
+    if name == "curve":  # curve writes into the training run: refuse on a copy of it
+        shutil.copytree(material["run"], tmp_path / "run_copy")
+        material, lock = {**material, "run": tmp_path / "run_copy"}, CURVE_LOCK
+    argv, _, folder = _commands(material, tmp_path)[name]
+    folder.mkdir(parents=True, exist_ok=True)
     (folder / "notes.txt").write_text("someone else's")
-    before = _snapshot(folder)
-    holder = _hold(folder)
+    before, names = _snapshot(folder), set(os.listdir(folder))
+    holder = _hold(folder, lock)
+    capsys.readouterr()
     try:
-        r = subprocess.run([EXE, *first], env=ENV, capture_output=True, text=True, timeout=300)
+        code = main(argv)
     finally:
         _kill(holder)
-    assert r.returncode == 2, r.stderr[-2000:]
-    assert f"is in use: pid {holder.pid} " in r.stderr.strip().splitlines()[-1]
+    err = capsys.readouterr().err
+    assert code == 2, err[-2000:]
+    last = err.strip().splitlines()[-1]
+    assert f"is in use: pid {holder.pid} " in last and f"so101-sim {argv[0]}" in last, last
+    assert str(folder) in last and "Traceback" not in err
     assert _snapshot(folder) == before
-    assert sorted(p.name for p in folder.iterdir()) == sorted([LOCK_FILE, "notes.txt"])
+    assert set(os.listdir(folder)) == names | {lock}
 
 
-def test_a_sigkilled_run_leaves_no_lock_behind(tmp_path: Path) -> None:
+def test_a_sigkilled_run_leaves_no_lock_behind(tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "ds"
     argv = ["record", "--episodes", "1", "--image-size", "48x64", "--out", str(out)]
     proc = _start(argv, {**ENV, PAUSE_ENV: "120"})
@@ -138,10 +160,9 @@ def test_a_sigkilled_run_leaves_no_lock_behind(tmp_path: Path) -> None:
     assert json.loads((out / LOCK_FILE).read_text())["pid"] == proc.pid
     _kill(proc)
     assert (out / LOCK_FILE).exists()  # the file stays, the kernel dropped its lock
-    r = subprocess.run([EXE, *argv, "--resume"], env=ENV, capture_output=True, text=True,
-                       timeout=300)
-    assert r.returncode == 0, r.stderr[-2000:]
-    assert "1 episodes" in r.stdout and not (out / LOCK_FILE).exists()
+    capsys.readouterr()
+    assert main([*argv, "--resume"]) == 0  # in this process: its imports are done
+    assert "1 episodes" in capsys.readouterr().out and not (out / LOCK_FILE).exists()
 
 
 def test_lock_in_one_process_names_its_holder(tmp_path: Path) -> None:
