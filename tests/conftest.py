@@ -73,11 +73,11 @@ def _unit_seconds() -> dict[str, float]:
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Longest work units first, each unit's tests together and in file order."""
     seconds = _unit_seconds()
-    first = {}
+    units = {item.nodeid: work_unit(item.nodeid) for item in items}
+    first: dict[str, int] = {}
     for i, item in enumerate(items):
-        first.setdefault(work_unit(item.nodeid), i)
-    items.sort(key=lambda it: (-seconds.get(work_unit(it.nodeid), 0),
-                               first[work_unit(it.nodeid)]))
+        first.setdefault(units[item.nodeid], i)
+    items.sort(key=lambda it: (-seconds.get(units[it.nodeid], 0), first[units[it.nodeid]]))
 
 
 @pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist, when installed

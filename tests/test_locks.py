@@ -24,6 +24,7 @@ from test_training import _tiny_preset
 
 from so101_sim.cli import main
 from so101_sim.harness.curve import CURVE_LOCK
+from so101_sim.harness.export import export_lock
 from so101_sim.record import record
 from so101_sim.train import train
 from so101_sim.utils.locks import LOCK_FILE, PAUSE_ENV, FolderInUseError, FolderLock
@@ -123,9 +124,9 @@ def test_a_refused_run_changes_nothing_in_the_folder(material, tmp_path: Path, n
                                                      capsys: pytest.CaptureFixture[str]) -> None:
     """Each command, run in this process while another process holds its folder: exit 2, one
     line naming the holder, and not a byte changed in the folder."""
-    # curve's lock is its own (a curve may run beside the training); an export replaces its
-    # folder whole, so its lock lives beside it
-    lock = {"export": ".export.export.lock"}.get(name, LOCK_FILE)
+    # curve's lock is its own (a curve may run beside the training); export's is beside
+    # the folder it replaces
+    lock = export_lock(tmp_path / "export").name if name == "export" else LOCK_FILE
     if name == "curve":  # curve writes into the training run: refuse on a copy of it
         shutil.copytree(material["run"], tmp_path / "run_copy")
         material, lock = {**material, "run": tmp_path / "run_copy"}, CURVE_LOCK

@@ -207,6 +207,11 @@ def _read_evals(eval_dirs: list[Path]) -> list[tuple[Path, dict]]:
     return found
 
 
+def export_lock(dest: Path) -> Path:
+    """The lock file of an export to `dest`: `dest` is replaced whole, so it lives beside it."""
+    return dest.parent / f".{dest.name}.export.lock"
+
+
 def export_policy(checkpoint: Path, dest: Path,
                   eval_dir: Path | Sequence[Path] | None = None,
                   hardware: str = "2-core CPU (no GPU)",
@@ -225,9 +230,8 @@ def export_policy(checkpoint: Path, dest: Path,
         else list(eval_dir)
     evals = _read_evals(dirs)
     also = [e for _, e in _read_evals(also_eval or [])]
-    # `dest` is replaced whole, so its lock lives beside it (in its parent folder)
     with folder_lock(dest.parent, f"the export {dest.name}", again="rerun",
-                     name=f".{dest.name}.export.lock"):
+                     name=export_lock(dest).name):
         return _export(checkpoint, dest, info_path, evals, hardware, also)
 
 
