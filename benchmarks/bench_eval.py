@@ -22,9 +22,10 @@ arithmetic; fp32 (the default) is both tools' default.
 (c) with --paths, run (a) against --faithful on the same seeds, side by side: wall time of
 each, the ratio, and `so101-sim compare` on the pair (both rates, the discordant seeds, exact
 McNemar p). (d) with --bf16, run (a) against the same with `--precision bf16`, likewise.
-(e) with --plain-kernels, run (a) against the same with the harness's two exact speed-ups
+(e) with --plain-kernels, run (a) against the same with the harness's exact forward speed-ups
 undone (torch's own max-pooling kernel instead of harness.policies.pooling's channels-last
-one, glibc's default heap instead of utils.heap's), likewise, and count the episodes whose
+one, glibc's default heap instead of utils.heap's, the eager U-Net instead of
+harness.policies.traced's graph), likewise, and count the episodes whose
 actions differ (their digests): there should be none.
 (f) with --startup R, only this: R rounds of `so101-sim eval` as shipped against the same
 command with its start-up speed-ups undone (no early fork server from harness.warmup, and
@@ -36,6 +37,9 @@ forward scheduling of before commit 537fdba (a short batch waited for the forwar
 instead of taking the free forward thread, and a second forward thread only with twice the
 rows of one forward in envs), alternating, likewise. Exact too: every row is padded to the
 same batch on one thread either way.
+(h) with --trace R, only this: R rounds as shipped against the same command with the diffusion
+U-Net run eagerly instead of as harness.policies.traced's recorded graph, alternating,
+likewise. Exact: the graph calls the same ATen operations.
 Without a checkpoint a tiny untrained DiffusionPolicy is built (tests/tiny_policy.py): it fails
 every episode, so only the timings mean anything.
 """
@@ -79,7 +83,15 @@ def policy_input_size(ckpt: Path) -> tuple[int, int]:
 #: `so101-sim` with the exact speed-ups undone before the policy module is imported, for (e).
 PLAIN_KERNELS = (
     "import sys; import so101_sim.harness.policies.pooling as p; import so101_sim.utils.heap as h; "
+    "import so101_sim.harness.policies.traced as t; t.use_traced_unet = lambda m, log=None: 0; "
     "p.use_channels_last_pooling = lambda module: 0; h.keep_freed_memory = lambda log=None: False; "
+    "from so101_sim.cli import main; sys.argv[0] = 'so101-sim'; sys.exit(main())")
+
+
+#: `so101-sim` with the diffusion U-Net run eagerly (no traced graph), for (h).
+PLAIN_TRACE = (
+    "import sys; import so101_sim.harness.policies.traced as t; "
+    "t.use_traced_unet = lambda m, log=None: 0; "
     "from so101_sim.cli import main; sys.argv[0] = 'so101-sim'; sys.exit(main())")
 
 
@@ -98,8 +110,9 @@ PLAIN_TAIL = (
     "self.can_launch() and (waiting >= batch or (not envs_stepping and not self.inflight)); "
     "from so101_sim.cli import main; sys.argv[0] = 'so101-sim'; sys.exit(main())")
 
-#: The script of each undone variant: (e) kernels, (f) startup, (g) tail.
-PLAIN = {"kernels": PLAIN_KERNELS, "startup": PLAIN_STARTUP, "tail": PLAIN_TAIL}
+#: The script of each undone variant: (e) kernels, (f) startup, (g) tail, (h) trace.
+PLAIN = {"kernels": PLAIN_KERNELS, "startup": PLAIN_STARTUP, "tail": PLAIN_TAIL,
+         "trace": PLAIN_TRACE}
 
 
 def run_harness(ckpt: Path, out: Path, episodes: int, n_envs: int, videos: int,
@@ -168,6 +181,9 @@ def main() -> None:
     parser.add_argument("--tail", type=int, default=0, metavar="R",
                         help="only (g): R alternating rounds, as shipped and with the forward "
                              "scheduling of before")
+    parser.add_argument("--trace", type=int, default=0, metavar="R",
+                        help="only (h): R alternating rounds, as shipped and with the "
+                             "diffusion U-Net run eagerly instead of as a traced graph")
     parser.add_argument("--bf16", action="store_true",
                         help="run (d): fp32 forwards against --precision bf16")
     parser.add_argument("--quick", action="store_true",
@@ -176,8 +192,8 @@ def main() -> None:
                         help="cut episodes to this many steps (a shorter task file)")
     parser.add_argument("--out", default=None, help="folder for the runs (default: a temp dir)")
     args = parser.parse_args()
-    if args.startup and args.tail:
-        parser.error("--startup and --tail each run their own rounds; give one of them")
+    if sum(bool(r) for r in (args.startup, args.tail, args.trace)) > 1:
+        parser.error("--startup, --tail and --trace each run their own rounds; give one")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("MUJOCO_GL", "egl")
     # Both commands run with the caller's OpenMP settings (libgomp's default unless set): the
@@ -204,10 +220,11 @@ def main() -> None:
     size = parse_image_size(args.image_size) if args.image_size else None
 
     n, k = args.episodes, args.n_envs
-    if args.startup or args.tail:
-        ab_rounds(args.startup or args.tail, "startup" if args.startup else "tail", ckpt,
-                  work, n, k, task)
-        return
+    rounds = {"startup": args.startup, "tail": args.tail, "trace": args.trace}
+    for kind, r in rounds.items():
+        if r:
+            ab_rounds(r, kind, ckpt, work, n, k, task)
+            return
     wall, agg = run_harness(ckpt, work / "harness_a", n, k, 2, size, task)
     t = agg["time"]
     print(f"(a) harness, {n} episodes, {k} envs: wall {wall:.1f} s ({wall / n:.2f} s/episode, "
@@ -273,10 +290,12 @@ def compare_variant(label: str, name: str, wall_a: float, ckpt: Path, work: Path
 
 def ab_rounds(rounds: int, kind: str, ckpt: Path, work: Path, n: int, k: int,
               task: str) -> None:
-    """(f) or (g): `rounds` alternating pairs, as shipped and with `kind`'s speed-up undone."""
+    """(f), (g) or (h): `rounds` alternating pairs, as shipped and with `kind`'s speed-up
+    undone."""
     import statistics
 
-    undone = {"startup": "start-up undone", "tail": "scheduling undone"}[kind]
+    undone = {"startup": "start-up undone", "tail": "scheduling undone",
+              "trace": "eager U-Net"}[kind]
     walls: dict[str, list[float]] = {"as shipped": [], undone: []}
     digests: dict[str, set[str]] = {name: set() for name in walls}
     idles: dict[str, list[float]] = {name: [] for name in walls}
@@ -294,9 +313,10 @@ def ab_rounds(rounds: int, kind: str, ckpt: Path, work: Path, n: int, k: int,
                   f"success {agg['n_success']}/{n}, cores idle {idle:.1f} core-s", flush=True)
     med = {name: statistics.median(w) for name, w in walls.items()}
     idle_med = {name: statistics.median(w) for name, w in idles.items()}
-    print(f"({'f' if kind == 'startup' else 'g'}) {n} episodes, {k} envs, {rounds} alternating "
-          f"rounds: as shipped {med['as shipped']:.1f} s against {med[undone]:.1f} s "
-          f"{undone.split()[-1]} (medians), {med[undone] / med['as shipped']:.2f}x; the same "
+    label = {"startup": "f", "tail": "g", "trace": "h"}[kind]
+    print(f"({label}) {n} episodes, {k} envs, {rounds} alternating rounds: as shipped "
+          f"{med['as shipped']:.1f} s against {med[undone]:.1f} s "
+          f"({undone}; medians), {med[undone] / med['as shipped']:.2f}x; the same "
           f"actions in every run: {len(digests['as shipped'] | digests[undone]) == 1}; "
           f"cores idle {idle_med['as shipped']:.1f} against {idle_med[undone]:.1f} core-s")
 

@@ -1,9 +1,11 @@
-"""The harness's exact speed-ups: channels-last max pooling and a heap that keeps freed memory."""
+"""The harness's exact speed-ups: channels-last max pooling, a heap that keeps freed memory and
+the traced U-Net."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +20,8 @@ from so101_sim.harness.policies.pooling import (
     use_channels_last_pooling,
     use_default_pooling,
 )
+from so101_sim.harness.policies.protocol import ChunkRequest
+from so101_sim.harness.policies.traced import TracedForward, use_eager_unet
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -102,3 +106,98 @@ def test_a_policy_process_keeps_its_freed_memory_so_forwards_stop_page_faulting(
         faults[keep] = int(out.stdout.split()[-1])
     # measured here: 0 kept, ~4,950 per 8-row forward on glibc's default heap
     assert faults[True] * 10 < faults[False], faults
+
+
+@pytest.mark.parametrize("which", ["tiny", "shipped"])
+def test_the_traced_unet_gives_the_eager_actions_bit_for_bit(tmp_path, which):
+    """Every loaded diffusion policy runs its U-Net as a traced graph: the same actions as the
+    eager U-Net, in one forward thread or two at once, full and padded forwards alike."""
+    path = (make_tiny_diffusion_checkpoint(tmp_path / "tiny") if which == "tiny"
+            else ROOT / "policy" / "pick_place_diffusion")
+    quiet = lambda _: None  # noqa: E731
+    fast = LeRobotPolicy(path, log=quiet)
+    unet = fast.policy.diffusion.unet
+    assert isinstance(unet.__dict__.get("forward"), TracedForward)
+    plain = LeRobotPolicy(path, log=quiet)
+    assert use_eager_unet(plain.policy) == 1 and use_eager_unet(plain.policy) == 0
+    assert "forward" not in plain.policy.diffusion.unet.__dict__
+    assert list(fast.policy.state_dict()) == list(plain.policy.state_dict())
+    reqs = _requests(fast, 11)  # one full forward of 8 rows and one padded
+    want = _chunks(plain, reqs)
+    np.testing.assert_array_equal(_chunks(fast, reqs), want)
+    np.testing.assert_array_equal(_chunks(fast, reqs), want)  # the record, run again
+    assert len(unet.forward._graphs) == 1  # one signature: 8 rows, traced once
+    if which == "tiny":
+        return
+    # The eval's two forward threads share one policy: slot ids apart, same rows each.
+    other = [ChunkRequest(r.slot + 100, r.seed, r.history) for r in reqs[:8]]
+    got: dict[str, np.ndarray] = {}
+    threads = [threading.Thread(target=lambda k=k, rs=rs: got.__setitem__(k, _chunks(fast, rs)))
+               for k, rs in (("a", reqs[:8]), ("b", other))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    np.testing.assert_array_equal(got["a"], want[:8])
+    np.testing.assert_array_equal(got["b"], want[:8])
+
+
+def test_the_traced_unet_steps_aside_where_its_record_might_not_hold(tmp_path):
+    """Gradients on, training mode, bf16 autocast, or a new input shape: the eager U-Net."""
+    path = make_tiny_diffusion_checkpoint(tmp_path / "tiny")
+    quiet = lambda _: None  # noqa: E731
+    policy = LeRobotPolicy(path, log=quiet)
+    traced = policy.policy.diffusion.unet.forward
+    eager_calls = []
+    real = traced.eager
+    traced.eager = lambda *a: eager_calls.append(a) or real(*a)
+    reqs = _requests(policy, 3)
+    _chunks(policy, reqs)
+    assert not eager_calls and len(traced._graphs) == 1  # no grad, eval, fp32 on CPU
+    (x, _), (t, tt), (c, _) = next(iter(traced._graphs))
+    gen = torch.Generator().manual_seed(0)
+    args = (torch.randn(x, generator=gen), torch.full(t, 5, dtype=tt),
+            torch.randn(c, generator=gen))
+    with torch.no_grad():
+        want = real(*args)
+        assert torch.equal(traced(*args), want) and not eager_calls
+    assert torch.equal(traced(*args), want) and len(eager_calls) == 1  # gradients on
+    traced.unet.train()
+    with torch.no_grad():
+        traced(*args)
+    traced.unet.eval()
+    assert len(eager_calls) == 2
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        traced(*args)
+    assert len(eager_calls) == 3 and len(traced._graphs) == 1
+    with torch.no_grad():  # two rows: traced once more, for that shape
+        two = tuple(a[:2] for a in args)
+        assert torch.equal(traced(*two), real(*two))
+    assert len(traced._graphs) == 2 and len(eager_calls) == 3  # real() called eager directly
+    bf16 = LeRobotPolicy(path, log=quiet, precision="bf16")
+    calls = []
+    inner = bf16.policy.diffusion.unet.forward
+    inner.eager = lambda *a: calls.append(a) or type(inner.unet).forward(inner.unet, *a[:2],
+                                                                          global_cond=a[2])
+    _chunks(bf16, _requests(bf16, 2))
+    assert calls and not inner._graphs  # --precision bf16 forwards stay eager
+
+
+def test_a_unet_that_cannot_be_traced_runs_eagerly_and_says_so(tmp_path, monkeypatch):
+    lines = []
+    policy = LeRobotPolicy(make_tiny_diffusion_checkpoint(tmp_path / "tiny"), log=lines.append)
+    plain = LeRobotPolicy(make_tiny_diffusion_checkpoint(tmp_path / "tiny2"), log=lambda _: None)
+    use_eager_unet(plain.policy)
+
+    def refuse(*_a, **_k):
+        raise RuntimeError("tracing is not supported here")
+
+    monkeypatch.setattr(torch.jit, "trace", refuse)
+    traced = policy.policy.diffusion.unet.forward
+    traced._graphs.clear()  # the load's own check traced already; start again
+    reqs = _requests(policy, 3)
+    np.testing.assert_array_equal(_chunks(policy, reqs), _chunks(plain, reqs))
+    _chunks(policy, reqs)
+    said = [line for line in lines if "could not trace" in line]
+    assert len(said) == 1 and "RuntimeError: tracing is not supported here" in said[0]
+    assert list(traced._graphs.values()) == [None]

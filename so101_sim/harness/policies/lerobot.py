@@ -41,6 +41,7 @@ from so101_sim.harness.camera_map import (
 from so101_sim.harness.policies.checks import check_features, fingerprint
 from so101_sim.harness.policies.pooling import use_channels_last_pooling
 from so101_sim.harness.policies.protocol import ChunkRequest, PolicyInfo
+from so101_sim.harness.policies.traced import use_traced_unet
 from so101_sim.tasks import ALL_CAMERAS as CAMERAS
 from so101_sim.train.checkpoint import (
     check_files,
@@ -133,10 +134,11 @@ class LeRobotPolicy:
                  for k, v in asked.items()}
         cfg.device = device
         self.cfg = cfg
-        # Both change speed, not results: pooling.py, utils/heap.py.
+        # These change speed, not results: utils/heap.py, pooling.py, traced.py.
         keep_freed_memory(log)
         self.policy = load_weights(cfg, self.path)
         use_channels_last_pooling(self.policy)
+        use_traced_unet(self.policy, log)
         self.pre, self.post = (_TakingTurns(p) for p in load_processors(cfg, self.path, device))
         self.batch_size = batch_size
         self._gens: dict[int, torch.Generator] = {}
