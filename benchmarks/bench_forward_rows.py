@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_forward_rows.py [CHECKPOINT] [--rows 8,16,32] [--repeats 10]
     .venv/bin/python benchmarks/bench_forward_rows.py --pooling-ab   # the pooling swap, A/B
+    .venv/bin/python benchmarks/bench_forward_rows.py --trace-ab     # the traced U-Net, A/B
 
 The harness pads every forward to the policy's ``batch_size`` rows (8 by default) because a
 row's actions change bitwise with the batch size on CPU. This prints, per batch size, the
@@ -14,7 +15,8 @@ nothing else busy (pause training).
 
 ``--pooling-ab`` instead times an 8-row forward with the harness's channels-last max pooling
 (``harness.policies.pooling``, what every loaded policy uses) against torch's default kernel,
-in alternating rounds, and checks that the actions keep their bits.
+in alternating rounds, and checks that the actions keep their bits. ``--trace-ab`` does the
+same for the traced U-Net (``harness.policies.traced``) against the eager one.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import torch
 from so101_sim.harness.policies.lerobot import LeRobotPolicy
 from so101_sim.harness.policies.pooling import use_default_pooling
 from so101_sim.harness.policies.protocol import ChunkRequest
+from so101_sim.harness.policies.traced import use_eager_unet
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = 8  # the harness's default rows per forward
@@ -63,22 +66,31 @@ def seconds(fn) -> float:
     return time.perf_counter() - t0
 
 
-def pooling_ab(checkpoint: str, repeats: int) -> None:
-    """8-row forwards with the channels-last pooling against torch's default, alternating."""
+#: --ab: what each A/B undoes in the "plain" policy, and the two rows' labels.
+AB = {
+    "pooling": (use_default_pooling, "max pooling", "torch's default kernel",
+                "channels-last (harness)"),
+    "trace": (use_eager_unet, "U-Net", "eager modules", "traced graph (harness)"),
+}
+
+
+def speedup_ab(checkpoint: str, repeats: int, kind: str) -> None:
+    """8-row forwards as the harness runs them against one speed-up undone, alternating."""
+    undo, what, plain_label, fast_label = AB[kind]
     quiet = lambda _: None  # noqa: E731
     fast = LeRobotPolicy(checkpoint, batch_size=BASE, log=quiet)
     plain = LeRobotPolicy(checkpoint, batch_size=BASE, log=quiet)
-    undone = use_default_pooling(plain.policy)
-    print(f"{checkpoint}: {undone} max-pooling layer(s); one torch thread, "
+    undone = undo(plain.policy)
+    print(f"{checkpoint}: {undone} {what} module(s) undone; one torch thread, "
           f"median of {repeats} alternating rounds\n")
     reqs = requests(fast, BASE)
     same = bool(np.array_equal(chunks(fast, reqs), chunks(plain, reqs)))
-    times: dict[str, list[float]] = {"torch's default kernel": [], "channels-last (harness)": []}
+    times: dict[str, list[float]] = {plain_label: [], fast_label: []}
     for _ in range(repeats):
-        times["torch's default kernel"].append(seconds(lambda: chunks(plain, reqs)))
-        times["channels-last (harness)"].append(seconds(lambda: chunks(fast, reqs)))
-    print("| max pooling | 8-row forward ms | vs default |\n|---|---|---|")
-    base = statistics.median(times["torch's default kernel"])
+        times[plain_label].append(seconds(lambda: chunks(plain, reqs)))
+        times[fast_label].append(seconds(lambda: chunks(fast, reqs)))
+    print(f"| {what} | 8-row forward ms | vs {plain_label} |\n|---|---|---|")
+    base = statistics.median(times[plain_label])
     for label, ts in times.items():
         f = statistics.median(ts)
         print(f"| {label} | {f * 1e3:.1f} | {f / base:.3f}x |")
@@ -92,11 +104,14 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=10, help="rounds of one forward per size")
     parser.add_argument("--pooling-ab", action="store_true",
                         help="time the channels-last max pooling against torch's default")
+    parser.add_argument("--trace-ab", action="store_true",
+                        help="time the traced U-Net against the eager one")
     args = parser.parse_args()
     torch.set_num_threads(1)  # as each of the harness's two forward threads runs
-    if args.pooling_ab:
-        pooling_ab(args.checkpoint, args.repeats)
-        return
+    for kind, asked in (("pooling", args.pooling_ab), ("trace", args.trace_ab)):
+        if asked:
+            speedup_ab(args.checkpoint, args.repeats, kind)
+            return
     sizes = [int(x) for x in args.rows.split(",")]
     if any(n < BASE for n in sizes):
         parser.error(f"--rows {args.rows}: every size must be >= {BASE} (the bit check compares "
