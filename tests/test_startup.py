@@ -1,5 +1,6 @@
 """The eval command's start-up: the collector paused and frozen in a process so101-sim owns,
-and the env workers' fork server started while the checkpoint loads."""
+and the env workers' fork server and the render self-check started while the checkpoint
+loads."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import os
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 COLLECTOR = textwrap.dedent("""
     import gc, json, sys, weakref
@@ -100,3 +102,48 @@ def test_the_fork_server_started_early_passes_its_gl_choice_and_imports_to_worke
     assert out["worker"]["gl"] == out["parent_gl"]
     assert out["worker"]["modules"] == ["so101_sim.sim.env", "so101_sim.utils.image_pipeline",
                                         "torch"]
+
+
+EARLY = textwrap.dedent("""
+    import json, sys
+    from pathlib import Path
+    import so101_sim.harness.frames as frames
+    from so101_sim.harness.frames import choose_rendering
+    from so101_sim.harness.policies import PolicyInfo
+    from so101_sim.harness.warmup import EarlySelfCheck, start_self_check, warm_eval_workers
+    from so101_sim.tasks import load_task
+
+    ckpt, mode = Path(sys.argv[1]), sys.argv[2]
+    info = PolicyInfo(name="p", cameras=("front", "side"), image_size=(60, 80),
+                      train_image_size=(480, 640), n_obs_steps=2, n_action_steps=8)
+    out = {}
+    if mode == "early":
+        out["warmed"] = warm_eval_workers(videos=False)
+        out["started"] = start_self_check(ckpt, "pick_place")
+        out["other_task"] = start_self_check(ckpt, "lift")  # asked below for pick_place only
+        out["faithful_only"] = start_self_check(ckpt / "missing", "pick_place")
+        broken = EarlySelfCheck(load_task("pick_place"), ("nowhere",), (480, 640), (60, 80))
+        out["broken"] = broken.result()
+        here = frames._self_check
+        def refuse(*args):
+            raise AssertionError("the early answer should have been used")
+        frames._self_check = refuse  # only this process: the early check runs in another
+    rendering = choose_rendering(info, None, task=load_task("pick_place"), faithful=False,
+                                 log=lambda line: None)
+    out.update(size=list(rendering.render_size), label=rendering.label, check=rendering.check,
+               pending=len(frames._AHEAD))
+    print(json.dumps(out))
+""")
+
+
+def test_the_self_check_started_early_gives_the_answer_of_one_run_here():
+    """`eval` starts the render self-check in a worker process while the policy loads; the
+    answer is the one choose_rendering finds itself, and a check asked for other inputs, or
+    one that fails, leaves choose_rendering to check here."""
+    ckpt = str(Path(__file__).resolve().parents[1] / "policy" / "pick_place_diffusion")
+    here, early = _run(EARLY, ckpt, "here"), _run(EARLY, ckpt, "early")
+    assert early["warmed"] and early["started"] and early["other_task"]
+    assert early["faithful_only"] is False and early["broken"] is None
+    assert here["size"] == early["size"] == [240, 320]
+    assert early["label"] == here["label"] and early["check"] == here["check"]
+    assert early["pending"] == 1 and here["pending"] == 0  # lift's was never asked for

@@ -90,12 +90,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
                                  ("camera_map", args.camera_map)) if v is not None}
     suite = "," in args.task or args.task == "all"  # one table over several tasks
     try:
-        if args.backend == "local" and _loads_checkpoint(args):
-            from so101_sim.harness.warmup import warm_eval_workers
+        checkpoint = _checkpoint_dir(args)
+        if args.backend == "local" and checkpoint is not None:
+            from so101_sim.harness.warmup import start_self_check, warm_eval_workers
 
             # The env workers' fork server imports on the other core while torch and the
-            # policy load here.
-            warm_eval_workers(videos=args.videos > 0, rollouts=args.save_rollouts is not None)
+            # policy load here, and the render self-check runs there once it has.
+            if (warm_eval_workers(videos=args.videos > 0,
+                                  rollouts=args.save_rollouts is not None)
+                    and not (suite or args.against or args.faithful or args.image_size)):
+                start_self_check(checkpoint, args.task, args.camera_map)
         with startup_objects():  # torch's and the checkpoint's objects live to the end
             if args.device != "cpu" and args.policy != "expert" and ":" not in args.policy:
                 from so101_sim.utils.devices import resolve_device
@@ -133,22 +137,23 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def _loads_checkpoint(args: argparse.Namespace) -> bool:
-    """Whether ``so101-sim eval`` will load a lerobot checkpoint that is there: a directory,
-    or the shipped one for a single task. Anything else fails or runs without the warm-up,
+def _checkpoint_dir(args: argparse.Namespace) -> Path | None:
+    """The lerobot checkpoint ``so101-sim eval`` will load, if it is there: a directory, or
+    the shipped one for a single task. Anything else fails or runs without the warm-up,
     whose GL line would only come before the error."""
     text = args.policy
     if text == "baseline":
         if "," in args.task or args.task == "all" or args.against:
-            return False
+            return None
         from so101_sim.harness.baselines import baseline_checkpoint
         from so101_sim.tasks import load_task
 
         try:
             text = str(baseline_checkpoint(load_task(args.task)))
         except (ValueError, FileNotFoundError):
-            return False
-    return (Path(text).expanduser() / "config.json").is_file()
+            return None
+    path = Path(text).expanduser()
+    return path if (path / "config.json").is_file() else None
 
 
 def cmd_curve(args: argparse.Namespace) -> int:
