@@ -23,8 +23,6 @@ from typing import Any
 
 __all__ = ["EarlySelfCheck", "start_self_check", "warm_eval_workers", "worker_preload"]
 
-IMAGE_PREFIX = "observation.images."
-
 
 def worker_preload(*, resize: bool, rollouts: bool, videos: bool) -> tuple[str, ...]:
     """Modules the fork server imports once for every eval worker (torch for in-worker
@@ -128,6 +126,7 @@ def start_self_check(checkpoint: Path, task: str, camera_map: dict[str, str] | N
     """
     from so101_sim.harness.camera_map import resolve_camera_map
     from so101_sim.harness.frames import check_key, expect_self_check
+    from so101_sim.harness.policies.checks import IMAGE_PREFIX
     from so101_sim.tasks import ALL_CAMERAS, load_task
     from so101_sim.train.checkpoint import train_image_size
 
