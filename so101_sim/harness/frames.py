@@ -13,8 +13,6 @@ width (``SO101Env(mesh_width=...)``), so the smaller render shows the policy the
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -125,9 +123,7 @@ def _candidates(inp: tuple[int, int], recorded: tuple[int, int]) -> list[tuple[i
 def check_key(task: TaskSpec, cameras: tuple[str, ...], recorded: tuple[int, int],
               inp: tuple[int, int]) -> tuple:
     """Everything a self-check's answer depends on (the task by its contents)."""
-    spec = {k: v for k, v in task.to_dict().items() if k != "source"}
-    digest = hashlib.sha256(json.dumps(spec, sort_keys=True, default=list).encode())
-    return digest.hexdigest(), tuple(cameras), tuple(recorded), tuple(inp)
+    return task.sha256(), tuple(cameras), tuple(recorded), tuple(inp)
 
 
 def self_check(task: TaskSpec, cameras: tuple[str, ...], recorded: tuple[int, int],

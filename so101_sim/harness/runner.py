@@ -14,8 +14,6 @@ LeRobotDataset (``so101_sim.harness.rollouts``); without it nothing here changes
 
 from __future__ import annotations
 
-import hashlib
-import json
 import time
 from collections import Counter, deque
 from collections.abc import Callable
@@ -111,9 +109,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
     lock_eval_folders(run.path, save_rollouts)  # another run writing them: refused here
     identity = {
         "policy": info.name, "policy_fingerprint": info.fingerprint, "task": spec.name,
-        "task_sha256": hashlib.sha256(json.dumps(
-            {k: v for k, v in spec.to_dict().items() if k != "source"}, sort_keys=True,
-            default=list).encode()).hexdigest(),
+        "task_sha256": spec.sha256(),
         "seed_start": seed_start, "episodes": episodes,
         "render_size": list(rendering.render_size), "mesh_width": rendering.mesh_width,
         "policy_image_size": list(rendering.input_size) if rendering.input_size else None,

@@ -11,6 +11,8 @@ rule; the other sections size and place the objects. The optional
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import tomllib
 from dataclasses import MISSING, dataclass, fields
@@ -88,6 +90,13 @@ class TaskSpec:
                 continue  # see the comment on `kind`
             out[f.name] = value.to_dict() if isinstance(value, Randomization) else value
         return out
+
+    def sha256(self) -> str:
+        """Digest of the task's settings, not of where they were read from: two runs with
+        equal digests ran the same task."""
+        settings = {k: v for k, v in self.to_dict().items() if k != "source"}
+        return hashlib.sha256(json.dumps(settings, sort_keys=True, default=list).encode()
+                              ).hexdigest()
 
 
 _SUITE_FIELDS = frozenset({"kind", "cameras", "n_cubes", "reach", "min_separation",

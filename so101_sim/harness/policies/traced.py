@@ -44,7 +44,7 @@ class _EagerCall(nn.Module):
         self.unet = unet
 
     def forward(self, x: torch.Tensor, timestep: torch.Tensor,
-                global_cond: torch.Tensor) -> torch.Tensor:
+                global_cond: torch.Tensor | None) -> torch.Tensor:
         return type(self.unet).forward(self.unet, x, timestep, global_cond=global_cond)
 
 
@@ -54,12 +54,13 @@ class TracedForward:
     def __init__(self, unet: nn.Module, log: Callable[[str], None] = print) -> None:
         self.unet = unet
         self.log = log
+        self._call = _EagerCall(unet)  # what is traced, and what runs eagerly
         self._graphs: dict[tuple, Any] = {}  # input signature -> traced graph (None: eager)
         self._lock = threading.Lock()
 
     def eager(self, x: torch.Tensor, timestep: torch.Tensor,
               global_cond: torch.Tensor | None = None) -> torch.Tensor:
-        return type(self.unet).forward(self.unet, x, timestep, global_cond=global_cond)
+        return self._call.forward(x, timestep, global_cond)
 
     def __call__(self, x: torch.Tensor, timestep: torch.Tensor,
                  global_cond: torch.Tensor | None = None) -> torch.Tensor:
@@ -84,7 +85,7 @@ class TracedForward:
             with warnings.catch_warnings():  # shapes read as numbers; TorchScript's deprecation
                 warnings.simplefilter("ignore", torch.jit.TracerWarning)
                 warnings.simplefilter("ignore", DeprecationWarning)
-                return torch.jit.trace(_EagerCall(self.unet), args, check_trace=False)
+                return torch.jit.trace(self._call, args, check_trace=False)
         except Exception as exc:  # a torch without TorchScript, or a U-Net it cannot record
             self.log(f"so101-sim eval: note: could not trace the diffusion U-Net "
                      f"({type(exc).__name__}: {str(exc)[:120]}); running it eagerly (the same "
