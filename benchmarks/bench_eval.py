@@ -25,8 +25,8 @@ McNemar p). (d) with --bf16, run (a) against the same with `--precision bf16`, l
 (e) with --plain-kernels, run (a) against the same with the harness's exact forward speed-ups
 undone (torch's own max-pooling kernel instead of harness.policies.pooling's channels-last
 one, glibc's default heap instead of utils.heap's, the eager U-Net instead of
-harness.policies.traced's graph), likewise, and count the episodes whose
-actions differ (their digests): there should be none.
+harness.policies.traced's graph, the image encoder always whole on the forward's thread),
+likewise, and count the episodes whose actions differ (their digests): there should be none.
 (f) with --startup R, only this: R rounds of `so101-sim eval` as shipped against the same
 command with its start-up speed-ups undone (no early fork server from harness.warmup, and
 the collector left as it is: main() called as a library, so utils.collector does nothing),
@@ -40,6 +40,10 @@ same batch on one thread either way.
 (h) with --trace R, only this: R rounds as shipped against the same command with the diffusion
 U-Net run eagerly instead of as harness.policies.traced's recorded graph, alternating,
 likewise. Exact: the graph calls the same ATen operations.
+(i) with --split R, only this: R rounds as shipped against the same command with the image
+encoder always run whole on the forward's own thread instead of in two halves on two cores
+when a core is free (harness.policies.encoder_split), alternating, likewise. Exact: the halves
+are used only where a load-time check found them bitwise equal to the whole batch.
 Without a checkpoint a tiny untrained DiffusionPolicy is built (tests/tiny_policy.py): it fails
 every episode, so only the timings mean anything.
 """
@@ -84,6 +88,8 @@ def policy_input_size(ckpt: Path) -> tuple[int, int]:
 PLAIN_KERNELS = (
     "import sys; import so101_sim.harness.policies.pooling as p; import so101_sim.utils.heap as h; "
     "import so101_sim.harness.policies.traced as t; t.use_traced_unet = lambda m, log=None: 0; "
+    "import so101_sim.harness.policies.encoder_split as e; "
+    "e.use_split_encoder = lambda m, spare=None: 0; "
     "p.use_channels_last_pooling = lambda module: 0; h.keep_freed_memory = lambda log=None: False; "
     "from so101_sim.cli import main; sys.argv[0] = 'so101-sim'; sys.exit(main())")
 
@@ -92,6 +98,13 @@ PLAIN_KERNELS = (
 PLAIN_TRACE = (
     "import sys; import so101_sim.harness.policies.traced as t; "
     "t.use_traced_unet = lambda m, log=None: 0; "
+    "from so101_sim.cli import main; sys.argv[0] = 'so101-sim'; sys.exit(main())")
+
+
+#: `so101-sim` with the image encoder always whole on the forward's thread, for (i).
+PLAIN_SPLIT = (
+    "import sys; import so101_sim.harness.policies.encoder_split as e; "
+    "e.use_split_encoder = lambda m, spare=None: 0; "
     "from so101_sim.cli import main; sys.argv[0] = 'so101-sim'; sys.exit(main())")
 
 
@@ -110,9 +123,10 @@ PLAIN_TAIL = (
     "self.can_launch() and (waiting >= batch or (not envs_stepping and not self.inflight)); "
     "from so101_sim.cli import main; sys.argv[0] = 'so101-sim'; sys.exit(main())")
 
-#: The script of each undone variant: (e) kernels, (f) startup, (g) tail, (h) trace.
+#: The script of each undone variant: (e) kernels, (f) startup, (g) tail, (h) trace,
+#: (i) split.
 PLAIN = {"kernels": PLAIN_KERNELS, "startup": PLAIN_STARTUP, "tail": PLAIN_TAIL,
-         "trace": PLAIN_TRACE}
+         "trace": PLAIN_TRACE, "split": PLAIN_SPLIT}
 
 
 def run_harness(ckpt: Path, out: Path, episodes: int, n_envs: int, videos: int,
@@ -184,6 +198,9 @@ def main() -> None:
     parser.add_argument("--trace", type=int, default=0, metavar="R",
                         help="only (h): R alternating rounds, as shipped and with the "
                              "diffusion U-Net run eagerly instead of as a traced graph")
+    parser.add_argument("--split", type=int, default=0, metavar="R",
+                        help="only (i): R alternating rounds, as shipped and with the image "
+                             "encoder never split over two cores")
     parser.add_argument("--bf16", action="store_true",
                         help="run (d): fp32 forwards against --precision bf16")
     parser.add_argument("--quick", action="store_true",
@@ -192,8 +209,9 @@ def main() -> None:
                         help="cut episodes to this many steps (a shorter task file)")
     parser.add_argument("--out", default=None, help="folder for the runs (default: a temp dir)")
     args = parser.parse_args()
-    if sum(bool(r) for r in (args.startup, args.tail, args.trace)) > 1:
-        parser.error("--startup, --tail and --trace each run their own rounds; give one")
+    if sum(bool(r) for r in (args.startup, args.tail, args.trace, args.split)) > 1:
+        parser.error("--startup, --tail, --trace and --split each run their own rounds; "
+                     "give one")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("MUJOCO_GL", "egl")
     # Both commands run with the caller's OpenMP settings (libgomp's default unless set): the
@@ -220,7 +238,8 @@ def main() -> None:
     size = parse_image_size(args.image_size) if args.image_size else None
 
     n, k = args.episodes, args.n_envs
-    rounds = {"startup": args.startup, "tail": args.tail, "trace": args.trace}
+    rounds = {"startup": args.startup, "tail": args.tail, "trace": args.trace,
+              "split": args.split}
     for kind, r in rounds.items():
         if r:
             ab_rounds(r, kind, ckpt, work, n, k, task)
@@ -295,7 +314,7 @@ def ab_rounds(rounds: int, kind: str, ckpt: Path, work: Path, n: int, k: int,
     import statistics
 
     undone = {"startup": "start-up undone", "tail": "scheduling undone",
-              "trace": "eager U-Net"}[kind]
+              "trace": "eager U-Net", "split": "encoder whole"}[kind]
     walls: dict[str, list[float]] = {"as shipped": [], undone: []}
     digests: dict[str, set[str]] = {name: set() for name in walls}
     idles: dict[str, list[float]] = {name: [] for name in walls}
@@ -313,7 +332,7 @@ def ab_rounds(rounds: int, kind: str, ckpt: Path, work: Path, n: int, k: int,
                   f"success {agg['n_success']}/{n}, cores idle {idle:.1f} core-s", flush=True)
     med = {name: statistics.median(w) for name, w in walls.items()}
     idle_med = {name: statistics.median(w) for name, w in idles.items()}
-    label = {"startup": "f", "tail": "g", "trace": "h"}[kind]
+    label = {"startup": "f", "tail": "g", "trace": "h", "split": "i"}[kind]
     print(f"({label}) {n} episodes, {k} envs, {rounds} alternating rounds: as shipped "
           f"{med['as shipped']:.1f} s against {med[undone]:.1f} s "
           f"({undone}; medians), {med[undone] / med['as shipped']:.2f}x; the same "

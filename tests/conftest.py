@@ -49,7 +49,7 @@ MODULE_SECONDS = {
     "test_ray_unreachable": 56, "test_gpu_scripts": 45, "test_locks": 42, "test_against": 29,
     "test_lerobot_zero_flags": 28, "test_policy_classes": 23, "test_exact_speedups": 33,
     "test_grasp_trace": 19, "test_explain": 18, "test_testing": 17, "test_augment": 16,
-    "test_wrist": 14, "test_bad_input": 13, "test_baselines": 13,
+    "test_wrist": 14, "test_bad_input": 13, "test_baselines": 13, "test_encoder_split": 13,
 }
 
 

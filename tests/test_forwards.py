@@ -73,3 +73,43 @@ def test_a_second_forward_needs_more_envs_than_one_forward_holds():
     assert not Forwards.pair_helps(8, 8)
     assert Forwards.pair_helps(9, 8)
     assert Forwards.pair_helps(3, 2)
+
+
+def test_only_a_forward_alone_may_take_a_second_core(monkeypatch):
+    """No env stepping and nothing else in flight, on a machine with a core per forward
+    thread to spare: the policy sees ``spare_core()`` inside that forward only."""
+    import so101_sim.harness.forwards as forwards_module
+    from so101_sim.harness.policies.protocol import spare_core
+
+    class _Spare(_Gate):
+        def predict_chunks(self, requests: list) -> list:
+            self.seen.append((len(requests), spare_core()))
+            return super().predict_chunks(requests)
+
+    monkeypatch.setattr(forwards_module, "_threads", lambda: 1)
+    for cores, concurrent in ((2, True), (2, False), (1, True)):
+        monkeypatch.setattr(forwards_module, "cpu_count", lambda c=cores: c)
+        gate = _Spare()
+        gate.seen = []
+        if not concurrent:  # its forwards run inside launch
+            gate.release.set()
+        f = Forwards(gate, concurrent=concurrent)
+        try:
+            f.launch([0] * 8, [0] * 8, alone=True)  # all envs wait for it, nothing in flight
+            if concurrent:
+                f.launch([0] * 3, [0] * 3, alone=True)  # the first is still in flight
+                gate.release.set()
+            while f.inflight:
+                f.wait()
+                f.finished()
+            f.launch([0] * 2, [0] * 2, alone=False)  # envs are stepping beside it
+            while f.inflight:
+                f.wait()
+                f.finished()
+        finally:
+            gate.release.set()
+            f.close()
+        want = [(8, cores >= 2), (2, False)] if not concurrent else [
+            (8, cores >= 2), (3, False), (2, False)]
+        assert sorted(gate.seen) == sorted(want), (cores, concurrent, gate.seen)
+        assert not spare_core()  # the flag stays with the forward's thread and ends with it

@@ -19,7 +19,15 @@ from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from multiprocessing import Pipe
 from typing import Any
 
+from so101_sim.harness.policies.protocol import core_to_spare
+from so101_sim.utils.devices import cpu_count
+
 CONCURRENT = 2  # forwards in flight when allowed: one per core of a 2-core machine
+
+
+def _threads() -> int:
+    torch = sys.modules.get("torch")
+    return torch.get_num_threads() if torch is not None else 1
 
 
 def _same_threads(n: int) -> None:
@@ -41,11 +49,9 @@ class Forwards:
         self._wake_r: Any = None
         self._wake_w: Any = None
         if concurrent:
-            torch = sys.modules.get("torch")
-            threads = torch.get_num_threads() if torch is not None else 1
             self._executor = ThreadPoolExecutor(self.limit, thread_name_prefix="so101-forward",
                                                 initializer=_same_threads,
-                                                initargs=(threads,))
+                                                initargs=(_threads(),))
             self._wake_r, self._wake_w = Pipe(duplex=False)
 
     @property
@@ -71,23 +77,27 @@ class Forwards:
             return False
         return waiting >= batch or not envs_stepping
 
-    def launch(self, requests: list, tokens: list) -> None:
-        """Start a forward for `requests`; `tokens` come back with its actions."""
+    def launch(self, requests: list, tokens: list, alone: bool = False) -> None:
+        """Start a forward for `requests`; `tokens` come back with its actions. `alone`: no
+        env is stepping, so with no other forward in flight this one may take a second core
+        (harness.policies.encoder_split) while the driver waits for it."""
         t0 = time.perf_counter()
+        spare = alone and not self.inflight
         if self._executor is None:
             fut: Future = Future()
             try:
-                fut.set_result((self.policy.predict_chunks(requests), time.perf_counter()))
+                fut.set_result(self._timed(requests, spare))
             except BaseException as exc:  # raised again by finished(), as a sync call would
                 fut.set_exception(exc)
         else:
-            fut = self._executor.submit(self._timed, requests)
+            fut = self._executor.submit(self._timed, requests, spare)
             fut.add_done_callback(self._signal)
         self.inflight.append((fut, requests, tokens, t0))
         self.peak = max(self.peak, len(self.inflight))
 
-    def _timed(self, requests: list) -> tuple[Any, float]:
-        return self.policy.predict_chunks(requests), time.perf_counter()
+    def _timed(self, requests: list, spare: bool) -> tuple[Any, float]:
+        with core_to_spare(spare and 2 * _threads() <= cpu_count()):
+            return self.policy.predict_chunks(requests), time.perf_counter()
 
     def _signal(self, _: Future) -> None:
         with contextlib.suppress(OSError):  # closed: the loop is over

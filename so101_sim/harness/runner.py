@@ -358,7 +358,8 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
             if forwards.should_launch(len(waiting), batch, envs_stepping=pool.busy > 0):
                 ready = [waiting.popleft() for _ in range(min(batch, len(waiting)))]
                 forwards.launch([ChunkRequest(i, slots[i].seed, list(slots[i].history))
-                                 for i in ready], [slots[i] for i in ready])
+                                 for i in ready], [slots[i] for i in ready],
+                                alone=not pool.busy)
                 continue
             if forwards.inflight and not pool.busy:
                 forwards.wait()

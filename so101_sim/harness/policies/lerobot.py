@@ -39,6 +39,7 @@ from so101_sim.harness.camera_map import (
     shown_camera_map,
 )
 from so101_sim.harness.policies.checks import check_features, fingerprint
+from so101_sim.harness.policies.encoder_split import use_split_encoder
 from so101_sim.harness.policies.pooling import use_channels_last_pooling
 from so101_sim.harness.policies.protocol import ChunkRequest, PolicyInfo
 from so101_sim.harness.policies.traced import use_traced_unet
@@ -134,11 +135,13 @@ class LeRobotPolicy:
                  for k, v in asked.items()}
         cfg.device = device
         self.cfg = cfg
-        # These change speed, not results: utils/heap.py, pooling.py, traced.py.
+        # These change speed, not results: utils/heap.py, pooling.py, traced.py,
+        # encoder_split.py.
         keep_freed_memory(log)
         self.policy = load_weights(cfg, self.path)
         use_channels_last_pooling(self.policy)
         use_traced_unet(self.policy, log)
+        use_split_encoder(self.policy)
         self.pre, self.post = (_TakingTurns(p) for p in load_processors(cfg, self.path, device))
         self.batch_size = batch_size
         self._gens: dict[int, torch.Generator] = {}

@@ -9,7 +9,9 @@ episode seed: then an episode's outcome does not depend on how many envs run bes
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
@@ -18,6 +20,7 @@ import numpy as np
 from so101_sim.tasks import ALL_CAMERAS as CAMERAS
 
 Obs = dict[str, Any]
+_LOCAL = threading.local()  # the forward on this thread: may it take a second core?
 
 
 @dataclass(frozen=True)
@@ -85,6 +88,23 @@ class EvalPolicy(Protocol):
 
     def predict_chunks(self, requests: Sequence[ChunkRequest]) -> np.ndarray:
         """Actions for every request: float array (len(requests), n_action_steps, 6)."""
+
+
+@contextmanager
+def core_to_spare(spare: bool) -> Iterator[None]:
+    """The harness runs ``predict_chunks`` in this block: `spare` says no env is stepping and
+    no other forward is in flight, so a core would idle until this forward ends."""
+    before = spare_core()
+    _LOCAL.spare = spare
+    try:
+        yield
+    finally:
+        _LOCAL.spare = before
+
+
+def spare_core() -> bool:
+    """Inside ``predict_chunks``: may this forward use a second core (``core_to_spare``)?"""
+    return getattr(_LOCAL, "spare", False)
 
 
 class StepPolicy:
