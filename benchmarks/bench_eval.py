@@ -6,6 +6,7 @@
     .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --plain-kernels --episodes 200
     .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --startup 3 --episodes 16
     .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --tail 2 --episodes 48 --n-envs 12
+    .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --split 2 --episodes 32 --n-envs 8
     .venv/bin/python benchmarks/bench_eval.py --quick          # tiny untrained checkpoint
 
 (a) `so101-sim eval` on N episodes with K env workers: wall time and the physics / render /
