@@ -5,6 +5,9 @@ A policy is anything with an ``info`` (``PolicyInfo``), ``start_episode(slot, se
 actions only when a slot has used up its previous chunk, batching every such slot into one
 ``predict_chunks`` call. Keep per-episode state per slot, and derive any randomness from the
 episode seed: then an episode's outcome does not depend on how many envs run beside it.
+Inside ``predict_chunks``, ``spare_core()`` says whether a core would otherwise idle until
+the call returns (no env stepping, no other forward in flight), for a policy that can use
+one without changing its results (the lerobot adapter's image encoder does).
 """
 
 from __future__ import annotations
