@@ -48,6 +48,9 @@ class Forwards:
         self._executor: ThreadPoolExecutor | None = None
         self._wake_r: Any = None
         self._wake_w: Any = None
+        # A forward alone may take a second core only where the forwards use half the cores or
+        # less (every forward thread runs the driver's torch thread count).
+        self._can_spare = 2 * _threads() <= cpu_count()
         if concurrent:
             self._executor = ThreadPoolExecutor(self.limit, thread_name_prefix="so101-forward",
                                                 initializer=_same_threads,
@@ -82,7 +85,7 @@ class Forwards:
         env is stepping, so with no other forward in flight this one may take a second core
         (harness.policies.encoder_split) while the driver waits for it."""
         t0 = time.perf_counter()
-        spare = alone and not self.inflight
+        spare = alone and not self.inflight and self._can_spare
         if self._executor is None:
             fut: Future = Future()
             try:
@@ -96,7 +99,7 @@ class Forwards:
         self.peak = max(self.peak, len(self.inflight))
 
     def _timed(self, requests: list, spare: bool) -> tuple[Any, float]:
-        with core_to_spare(spare and 2 * _threads() <= cpu_count()):
+        with core_to_spare(spare):
             return self.policy.predict_chunks(requests), time.perf_counter()
 
     def _signal(self, _: Future) -> None:

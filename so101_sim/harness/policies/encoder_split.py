@@ -26,6 +26,7 @@ from concurrent.futures import ThreadPoolExecutor
 import torch
 from torch import nn
 
+from so101_sim.harness.policies.instance_forward import unwrap_forwards, wrap_forwards
 from so101_sim.harness.policies.protocol import spare_core
 
 __all__ = ["SplitEncoder", "use_split_encoder", "use_whole_encoder"]
@@ -85,28 +86,18 @@ def _encode(whole: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor,
         return whole(x)
 
 
-def _encoders(module: nn.Module) -> list[nn.Module]:
-    """The image encoders inside `module` (lerobot's DiffusionRgbEncoder)."""
-    return [m for m in module.modules() if type(m).__name__ == "DiffusionRgbEncoder"]
+ENCODER = "DiffusionRgbEncoder"  # lerobot's diffusion image encoder class
 
 
 def use_split_encoder(module: nn.Module, spare: Callable[[], bool] = spare_core) -> int:
     """Run every diffusion image encoder inside `module` through ``SplitEncoder``; returns
     how many. Parameters are untouched, so weights and fingerprints stay what they were."""
-    encoders = _encoders(module)
-    for enc in encoders:
-        if not isinstance(enc.__dict__.get("forward"), SplitEncoder):
-            enc.forward = SplitEncoder(enc, spare)
-    return len(encoders)
+    return wrap_forwards(module, ENCODER, SplitEncoder, lambda enc: SplitEncoder(enc, spare))
 
 
 def use_whole_encoder(module: nn.Module) -> int:
     """Undo ``use_split_encoder`` (for A/B timings and tests); returns how many were undone."""
-    undone = 0
-    for enc in _encoders(module):
-        split = enc.__dict__.get("forward")
-        if isinstance(split, SplitEncoder):
-            split.close()
-            del enc.forward
-            undone += 1
-    return undone
+    removed = unwrap_forwards(module, ENCODER, SplitEncoder)
+    for split in removed:
+        split.close()
+    return len(removed)

@@ -33,6 +33,8 @@ from typing import Any
 import torch
 from torch import nn
 
+from so101_sim.harness.policies.instance_forward import unwrap_forwards, wrap_forwards
+
 __all__ = ["TracedForward", "use_eager_unet", "use_traced_unet"]
 
 
@@ -93,9 +95,7 @@ class TracedForward:
             return None
 
 
-def _unets(module: nn.Module) -> list[nn.Module]:
-    """The diffusion U-Nets inside `module` (lerobot's DiffusionConditionalUnet1d)."""
-    return [m for m in module.modules() if type(m).__name__ == "DiffusionConditionalUnet1d"]
+UNET = "DiffusionConditionalUnet1d"  # lerobot's diffusion U-Net class
 
 
 def use_traced_unet(module: nn.Module, log: Callable[[str], None] = print) -> int:
@@ -103,18 +103,9 @@ def use_traced_unet(module: nn.Module, log: Callable[[str], None] = print) -> in
 
     Parameters are untouched, so a checkpoint's weights and fingerprint stay what they were.
     """
-    unets = _unets(module)
-    for unet in unets:
-        if not isinstance(unet.__dict__.get("forward"), TracedForward):
-            unet.forward = TracedForward(unet, log)
-    return len(unets)
+    return wrap_forwards(module, UNET, TracedForward, lambda unet: TracedForward(unet, log))
 
 
 def use_eager_unet(module: nn.Module) -> int:
     """Undo ``use_traced_unet`` (for A/B timings and tests); returns how many were undone."""
-    undone = 0
-    for unet in _unets(module):
-        if isinstance(unet.__dict__.get("forward"), TracedForward):
-            del unet.forward
-            undone += 1
-    return undone
+    return len(unwrap_forwards(module, UNET, TracedForward))
