@@ -12,14 +12,18 @@
 (a) `so101-sim eval` on N episodes with K env workers: wall time and the physics / render /
 policy split (target: the shipped policy's 200 seeds in <= 100 s on 2 cores). It renders the
 harness's default way (the smallest size that passes the self-check against the training
-data's size, then resize_frames) unless --image-size is given.
+data's size, then resize_frames) unless --image-size is given. It also prints the cores'
+busy time over the run (/proc/stat) and the wall that work needs at the least, spread
+perfectly over the cores: a target below that floor needs less work, not better scheduling.
 (b) with --compare-lerobot, the same checkpoint and seeds through `lerobot-eval
 --env.type=so101_pick_place` and through the harness, both rendering at the policy's input
 size (lerobot-eval cannot resize) and both writing 10 videos (lerobot-eval always does):
 wall time of each whole command, the speed-up (target >= 4x) and whether the success rates'
-95% intervals overlap. `--precision bf16` runs (b) with bfloat16 autocast in both tools (the
-harness's `--precision bf16`, lerobot-eval's `--policy.use_amp=true`), so both do the same
-arithmetic; fp32 (the default) is both tools' default.
+95% intervals overlap, and the highest speed-up the harness's measured work allows against
+that lerobot-eval wall (its floor, as in (a)). `--precision bf16` runs (b) with bfloat16
+autocast in both tools (the harness's `--precision bf16`, lerobot-eval's
+`--policy.use_amp=true`), so both do the same arithmetic; fp32 (the default) is both
+tools' default.
 (c) with --paths, run (a) against --faithful on the same seeds, side by side: wall time of
 each, the ratio, and `so101-sim compare` on the pair (both rates, the discordant seeds, exact
 McNemar p). (d) with --bf16, run (a) against the same with `--precision bf16`, likewise.
@@ -245,7 +249,9 @@ def main() -> None:
         if r:
             ab_rounds(r, kind, ckpt, work, n, k, task)
             return
+    busy0 = busy_core_s()
     wall, agg = run_harness(ckpt, work / "harness_a", n, k, 2, size, task)
+    busy = busy_core_s() - busy0
     t = agg["time"]
     print(f"(a) harness, {n} episodes, {k} envs: wall {wall:.1f} s ({wall / n:.2f} s/episode, "
           f"eval loop {agg['eval_s']:.1f} s); physics {t['physics_s']:.1f} s, render "
@@ -257,6 +263,7 @@ def main() -> None:
     print(f"    start-up: {wall - agg['eval_s']:.1f} s before the loop (imports, checkpoint, "
           f"render self-check), workers up in {info['config']['workers']['start_s']:.1f} s, "
           f"first episode done {first:.1f} s after its reset ({k} envs start together)")
+    print(f"    {floor_line(busy, wall)}")
     if args.paths:
         compare_variant("(c)", "faithful", wall, ckpt, work, n, k, task, ("--faithful",))
     if args.bf16:
@@ -267,8 +274,10 @@ def main() -> None:
         return
     inp = policy_input_size(ckpt)
     bf16 = args.precision == "bf16"
+    busy0 = busy_core_s()
     w_h, a_h = run_harness(ckpt, work / "harness_b", n, k, min(10, n), inp, task,
                            ("--precision", args.precision))
+    busy_h = busy_core_s() - busy0
     w_l, a_l = run_lerobot_eval(ckpt, work / "lerobot_b", n, k, inp, task, episode_length,
                                 amp=bf16)
     k_h, k_l = a_h["n_success"], a_l["pc_success"] * n / 100
@@ -285,6 +294,19 @@ def main() -> None:
               f"(its loop {agg['eval_s']:.1f} s)")
     print(f"    speed-up {w_l / w_h:.2f}x (target >= 4x); 95% intervals "
           f"{'overlap' if overlap else 'DO NOT overlap'}")
+    cores = len(os.sched_getaffinity(0))
+    need = 4 * busy_h / (w_l * cores)
+    print(f"    harness: {floor_line(busy_h, w_h)}, so at most {w_l * cores / busy_h:.2f}x "
+          f"against this lerobot-eval run; 4x needs "
+          + ("no less work" if need <= 1 else f"{100 * (1 - 1 / need):.0f}% less work"))
+
+
+def floor_line(busy: float, wall: float) -> str:
+    """The shortest wall a run's work allows: its busy core-seconds spread perfectly over
+    the cores this process may use. A target below it needs less work, not better scheduling."""
+    cores = len(os.sched_getaffinity(0))
+    return (f"cores busy {busy:.1f} core-s over the {wall:.1f} s; that work takes at least "
+            f"{busy / cores:.1f} s on {cores} cores however it is scheduled")
 
 
 def compare_variant(label: str, name: str, wall_a: float, ckpt: Path, work: Path, n: int,
@@ -339,6 +361,14 @@ def ab_rounds(rounds: int, kind: str, ckpt: Path, work: Path, n: int, k: int,
           f"({undone}; medians), {med[undone] / med['as shipped']:.2f}x; the same "
           f"actions in every run: {len(digests['as shipped'] | digests[undone]) == 1}; "
           f"cores idle {idle_med['as shipped']:.1f} against {idle_med[undone]:.1f} core-s")
+
+
+def busy_core_s() -> float:
+    """User, system and interrupt time of all cores so far, from /proc/stat: the work done
+    while a run ran (the run's own, if nothing else runs), not counting time stolen by the
+    hypervisor."""
+    f = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:8]]
+    return (f[0] + f[1] + f[2] + f[5] + f[6]) / os.sysconf("SC_CLK_TCK")
 
 
 def idle_core_s() -> float:
