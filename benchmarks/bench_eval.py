@@ -69,6 +69,8 @@ from so101_sim.cli import parse_image_size
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
+#: The cores this process (and the commands it runs) may use: what a run's work spreads over.
+CORES = len(os.sched_getaffinity(0))
 
 
 def short_task(out_dir: Path, max_steps: int) -> Path:
@@ -294,9 +296,8 @@ def main() -> None:
               f"(its loop {agg['eval_s']:.1f} s)")
     print(f"    speed-up {w_l / w_h:.2f}x (target >= 4x); 95% intervals "
           f"{'overlap' if overlap else 'DO NOT overlap'}")
-    cores = len(os.sched_getaffinity(0))
-    need = 4 * busy_h / (w_l * cores)
-    print(f"    harness: {floor_line(busy_h, w_h)}, so at most {w_l * cores / busy_h:.2f}x "
+    need = 4 * busy_h / (w_l * CORES)
+    print(f"    harness: {floor_line(busy_h, w_h)}, so at most {w_l * CORES / busy_h:.2f}x "
           f"against this lerobot-eval run; 4x needs "
           + ("no less work" if need <= 1 else f"{100 * (1 - 1 / need):.0f}% less work"))
 
@@ -304,9 +305,8 @@ def main() -> None:
 def floor_line(busy: float, wall: float) -> str:
     """The shortest wall a run's work allows: its busy core-seconds spread perfectly over
     the cores this process may use. A target below it needs less work, not better scheduling."""
-    cores = len(os.sched_getaffinity(0))
     return (f"cores busy {busy:.1f} core-s over the {wall:.1f} s; that work takes at least "
-            f"{busy / cores:.1f} s on {cores} cores however it is scheduled")
+            f"{busy / CORES:.1f} s on {CORES} cores however it is scheduled")
 
 
 def compare_variant(label: str, name: str, wall_a: float, ckpt: Path, work: Path, n: int,

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_eval import busy_core_s, floor_line
+from bench_eval import CORES, busy_core_s, floor_line
 
 pytestmark = pytest.mark.skipif(not Path("/proc/stat").exists(), reason="needs /proc/stat")
 
@@ -31,11 +31,11 @@ def test_busy_core_seconds_count_at_least_this_process_cpu_time():
     # A process's CPU time may include what the hypervisor stole while it ran.
     busy = busy_core_s() - b0 + steal_core_s() - s0
     # /proc/stat counts in ticks, per core: allow one tick of rounding on each.
-    assert busy >= cpu - 2 * tick * len(os.sched_getaffinity(0))
+    assert busy >= cpu - 2 * tick * CORES
     assert cpu >= 0.3
 
 
 def test_the_floor_spreads_the_work_over_the_cores_this_process_may_use():
-    cores = len(os.sched_getaffinity(0))
-    line = floor_line(10.0 * cores, 12.0)
-    assert f"at least 10.0 s on {cores} cores" in line and "over the 12.0 s" in line
+    assert len(os.sched_getaffinity(0)) == CORES
+    line = floor_line(10.0 * CORES, 12.0)
+    assert f"at least 10.0 s on {CORES} cores" in line and "over the 12.0 s" in line
