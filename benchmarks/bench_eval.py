@@ -7,6 +7,7 @@
     .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --startup 3 --episodes 16
     .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --tail 2 --episodes 48 --n-envs 12
     .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --split 2 --episodes 32 --n-envs 8
+    .venv/bin/python benchmarks/bench_eval.py CHECKPOINT --exit 4 --episodes 16
     .venv/bin/python benchmarks/bench_eval.py --quick          # tiny untrained checkpoint
 
 (a) `so101-sim eval` on N episodes with K env workers: wall time and the physics / render /
@@ -49,6 +50,9 @@ likewise. Exact: the graph calls the same ATen operations.
 encoder always run whole on the forward's own thread instead of in two halves on two cores
 when a core is free (harness.policies.encoder_split), alternating, likewise. Exact: the halves
 are used only where a load-time check found them bitwise equal to the whole batch.
+(j) with --exit R, only this: R rounds as shipped against the same command whose fork server
+tears its interpreter down when the command exits instead of leaving at once
+(workers.server_init), alternating, likewise. Exact: only the exit changes.
 Without a checkpoint a tiny untrained DiffusionPolicy is built (tests/tiny_policy.py): it fails
 every episode, so only the timings mean anything.
 """
@@ -130,10 +134,17 @@ PLAIN_TAIL = (
     "self.can_launch() and (waiting >= batch or (not envs_stepping and not self.inflight)); "
     "from so101_sim.cli import main; sys.argv[0] = 'so101-sim'; sys.exit(main())")
 
+#: `so101-sim` whose fork server tears its interpreter down at exit (no workers.server_init
+#: among its preloads), for (j).
+PLAIN_EXIT = (
+    "import sys; import so101_sim.workers.local as l; "
+    "l.server_preload = lambda preload: list(preload); "
+    "from so101_sim.cli import main; sys.argv[0] = 'so101-sim'; sys.exit(main())")
+
 #: The script of each undone variant: (e) kernels, (f) startup, (g) tail, (h) trace,
-#: (i) split.
+#: (i) split, (j) exit.
 PLAIN = {"kernels": PLAIN_KERNELS, "startup": PLAIN_STARTUP, "tail": PLAIN_TAIL,
-         "trace": PLAIN_TRACE, "split": PLAIN_SPLIT}
+         "trace": PLAIN_TRACE, "split": PLAIN_SPLIT, "exit": PLAIN_EXIT}
 
 
 def run_harness(ckpt: Path, out: Path, episodes: int, n_envs: int, videos: int,
@@ -208,6 +219,9 @@ def main() -> None:
     parser.add_argument("--split", type=int, default=0, metavar="R",
                         help="only (i): R alternating rounds, as shipped and with the image "
                              "encoder never split over two cores")
+    parser.add_argument("--exit", type=int, default=0, metavar="R",
+                        help="only (j): R alternating rounds, as shipped and with the fork "
+                             "server's interpreter teardown at exit (no workers.server_init)")
     parser.add_argument("--bf16", action="store_true",
                         help="run (d): fp32 forwards against --precision bf16")
     parser.add_argument("--quick", action="store_true",
@@ -216,9 +230,9 @@ def main() -> None:
                         help="cut episodes to this many steps (a shorter task file)")
     parser.add_argument("--out", default=None, help="folder for the runs (default: a temp dir)")
     args = parser.parse_args()
-    if sum(bool(r) for r in (args.startup, args.tail, args.trace, args.split)) > 1:
-        parser.error("--startup, --tail, --trace and --split each run their own rounds; "
-                     "give one")
+    if sum(bool(r) for r in (args.startup, args.tail, args.trace, args.split, args.exit)) > 1:
+        parser.error("--startup, --tail, --trace, --split and --exit each run their own "
+                     "rounds; give one")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("MUJOCO_GL", "egl")
     # Both commands run with the caller's OpenMP settings (libgomp's default unless set): the
@@ -246,7 +260,7 @@ def main() -> None:
 
     n, k = args.episodes, args.n_envs
     rounds = {"startup": args.startup, "tail": args.tail, "trace": args.trace,
-              "split": args.split}
+              "split": args.split, "exit": args.exit}
     for kind, r in rounds.items():
         if r:
             ab_rounds(r, kind, ckpt, work, n, k, task)
@@ -332,12 +346,13 @@ def compare_variant(label: str, name: str, wall_a: float, ckpt: Path, work: Path
 
 def ab_rounds(rounds: int, kind: str, ckpt: Path, work: Path, n: int, k: int,
               task: str) -> None:
-    """(f), (g) or (h): `rounds` alternating pairs, as shipped and with `kind`'s speed-up
+    """(f) to (j): `rounds` alternating pairs, as shipped and with `kind`'s speed-up
     undone."""
     import statistics
 
     undone = {"startup": "start-up undone", "tail": "scheduling undone",
-              "trace": "eager U-Net", "split": "encoder whole"}[kind]
+              "trace": "eager U-Net", "split": "encoder whole",
+              "exit": "server teardown"}[kind]
     walls: dict[str, list[float]] = {"as shipped": [], undone: []}
     digests: dict[str, set[str]] = {name: set() for name in walls}
     idles: dict[str, list[float]] = {name: [] for name in walls}
@@ -355,7 +370,7 @@ def ab_rounds(rounds: int, kind: str, ckpt: Path, work: Path, n: int, k: int,
                   f"success {agg['n_success']}/{n}, cores idle {idle:.1f} core-s", flush=True)
     med = {name: statistics.median(w) for name, w in walls.items()}
     idle_med = {name: statistics.median(w) for name, w in idles.items()}
-    label = {"startup": "f", "tail": "g", "trace": "h", "split": "i"}[kind]
+    label = {"startup": "f", "tail": "g", "trace": "h", "split": "i", "exit": "j"}[kind]
     print(f"({label}) {n} episodes, {k} envs, {rounds} alternating rounds: as shipped "
           f"{med['as shipped']:.1f} s against {med[undone]:.1f} s "
           f"({undone}; medians), {med[undone] / med['as shipped']:.2f}x; the same "

@@ -3,6 +3,7 @@ dies, and the backend checks. The Ray backend runs the same checks in test_ray_b
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -126,3 +127,52 @@ def test_import_so101_sim_loads_no_ray_or_torch() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, timeout=300).stdout
     assert out.strip() == "[]"
+
+
+SLOW_EXIT = """
+import atexit, time
+atexit.register(time.sleep, 60)  # a teardown that would hold the command's output open
+"""
+
+SERVER_PROBE = """
+import gc, sys
+
+class Probe:
+    def probe(self):
+        return {"frozen": gc.get_freeze_count(),
+                "server_init": "so101_sim.workers.server_init" in sys.modules,
+                "slow_exit": "slow_exit" in sys.modules}
+
+class ProbeFactory:
+    def __call__(self):
+        return Probe()
+"""
+
+DRIVER = """
+import json, sys
+sys.path.insert(0, sys.argv[1])
+from so101_sim.workers import start_pool
+from server_probe import ProbeFactory
+
+with start_pool(ProbeFactory(), 1, name="test-exit", preload=("slow_exit",)) as pool:
+    pool.submit(0, "probe")
+    (reply,) = pool.collect()
+print(json.dumps(reply.value), flush=True)
+"""
+
+
+def test_the_fork_server_leaves_without_holding_the_commands_output(tmp_path) -> None:
+    """The fork server keeps the driver's stdout and stderr, so a reader of them (a pipe,
+    subprocess.run, CI) waits until the server is gone: it exits at once, skipping its
+    interpreter's teardown (here an exit handler that would sleep 60 s), and the objects its
+    preloads made are frozen for its workers."""
+    (tmp_path / "slow_exit.py").write_text(SLOW_EXIT)
+    (tmp_path / "server_probe.py").write_text(SERVER_PROBE)
+    # cwd: the server's sys.path starts with it (Python 3.12's fork server ignores the
+    # driver's sys.path when it imports its preloads)
+    out = subprocess.run([sys.executable, "-c", DRIVER, str(tmp_path)], capture_output=True,
+                         text=True, timeout=45, cwd=tmp_path)  # closed long before the sleep
+    assert out.returncode == 0, out.stderr[-3000:]
+    probe = json.loads(out.stdout.strip().splitlines()[-1])
+    assert probe["server_init"] is True and probe["slow_exit"] is True  # both preloaded
+    assert probe["frozen"] > 1000  # the preloads' objects (so101_sim, numpy, ...) are frozen

@@ -24,6 +24,14 @@ from typing import Any
 
 from so101_sim.workers.base import PoolInfo, Reply, WorkerPool
 
+#: Imported by the fork server after every pool's preloads, never here (workers.server_init).
+SERVER_INIT = "so101_sim.workers.server_init"
+
+
+def server_preload(preload: tuple[str, ...]) -> list[str]:
+    """What the fork server imports: `preload`, then ``SERVER_INIT``."""
+    return [m for m in preload if m != SERVER_INIT] + [SERVER_INIT]
+
 
 def _worker_main(conn: Connection, factory: Callable[[], Any]) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group
@@ -62,7 +70,7 @@ def start_fork_server(preload: tuple[str, ...]) -> None:
     """
     from multiprocessing import forkserver
 
-    mp.get_context("forkserver").set_forkserver_preload(list(preload))
+    mp.get_context("forkserver").set_forkserver_preload(server_preload(preload))
     forkserver.ensure_running()
 
 
@@ -75,8 +83,9 @@ class LocalPool(WorkerPool):
         self.factory, self.name = factory, name
         self.timeout_s, self.start_timeout_s = timeout_s, start_timeout_s
         self._ctx = mp.get_context("forkserver")
-        if preload:  # the fork server imports these once; each worker forks from it ready
-            self._ctx.set_forkserver_preload(list(preload))
+        # the fork server imports these once (if it is not running yet); each worker forks
+        # from it ready
+        self._ctx.set_forkserver_preload(server_preload(preload))
         self._procs: list[Any] = [None] * n
         self._conns: list[Connection | None] = [None] * n
         self._calls: list[deque[tuple[str, tuple]]] = [deque() for _ in range(n)]
