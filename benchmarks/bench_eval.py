@@ -147,6 +147,19 @@ PLAIN = {"kernels": PLAIN_KERNELS, "startup": PLAIN_STARTUP, "tail": PLAIN_TAIL,
          "trace": PLAIN_TRACE, "split": PLAIN_SPLIT, "exit": PLAIN_EXIT}
 
 
+#: The alternating A/B runs, by flag: (label, name of the undone variant in the table, what
+#: the undone variant does, for --help). Their scripts are PLAIN[kind].
+AB_KINDS = {
+    "startup": ("f", "start-up undone", "the start-up speed-ups undone"),
+    "tail": ("g", "scheduling undone", "the forward scheduling of before"),
+    "trace": ("h", "eager U-Net", "the diffusion U-Net run eagerly instead of as a traced "
+                                  "graph"),
+    "split": ("i", "encoder whole", "the image encoder never split over two cores"),
+    "exit": ("j", "server teardown", "the fork server's interpreter teardown at exit (no "
+                                     "workers.server_init)"),
+}
+
+
 def run_harness(ckpt: Path, out: Path, episodes: int, n_envs: int, videos: int,
                 image_size: tuple[int, int] | None, task: str,
                 flags: tuple[str, ...] = (), plain: bool | str = False) -> tuple[float, dict]:
@@ -207,21 +220,10 @@ def main() -> None:
                         help="run (c): the default render path against --faithful")
     parser.add_argument("--plain-kernels", action="store_true",
                         help="(e): also run (a) without the exact speed-ups, same seeds")
-    parser.add_argument("--startup", type=int, default=0, metavar="R",
-                        help="run only (f): R alternating rounds with and without the "
-                             "start-up speed-ups")
-    parser.add_argument("--tail", type=int, default=0, metavar="R",
-                        help="only (g): R alternating rounds, as shipped and with the forward "
-                             "scheduling of before")
-    parser.add_argument("--trace", type=int, default=0, metavar="R",
-                        help="only (h): R alternating rounds, as shipped and with the "
-                             "diffusion U-Net run eagerly instead of as a traced graph")
-    parser.add_argument("--split", type=int, default=0, metavar="R",
-                        help="only (i): R alternating rounds, as shipped and with the image "
-                             "encoder never split over two cores")
-    parser.add_argument("--exit", type=int, default=0, metavar="R",
-                        help="only (j): R alternating rounds, as shipped and with the fork "
-                             "server's interpreter teardown at exit (no workers.server_init)")
+    for kind, (label, _, undone_help) in AB_KINDS.items():
+        parser.add_argument(f"--{kind}", type=int, default=0, metavar="R",
+                            help=f"only ({label}): R alternating rounds, as shipped and "
+                                 f"with {undone_help}")
     parser.add_argument("--bf16", action="store_true",
                         help="run (d): fp32 forwards against --precision bf16")
     parser.add_argument("--quick", action="store_true",
@@ -230,9 +232,10 @@ def main() -> None:
                         help="cut episodes to this many steps (a shorter task file)")
     parser.add_argument("--out", default=None, help="folder for the runs (default: a temp dir)")
     args = parser.parse_args()
-    if sum(bool(r) for r in (args.startup, args.tail, args.trace, args.split, args.exit)) > 1:
-        parser.error("--startup, --tail, --trace, --split and --exit each run their own "
-                     "rounds; give one")
+    rounds = {kind: getattr(args, kind) for kind in AB_KINDS}
+    if sum(bool(r) for r in rounds.values()) > 1:
+        parser.error(", ".join(f"--{kind}" for kind in AB_KINDS)
+                     + " each run their own rounds; give one")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("MUJOCO_GL", "egl")
     # Both commands run with the caller's OpenMP settings (libgomp's default unless set): the
@@ -259,8 +262,6 @@ def main() -> None:
     size = parse_image_size(args.image_size) if args.image_size else None
 
     n, k = args.episodes, args.n_envs
-    rounds = {"startup": args.startup, "tail": args.tail, "trace": args.trace,
-              "split": args.split, "exit": args.exit}
     for kind, r in rounds.items():
         if r:
             ab_rounds(r, kind, ckpt, work, n, k, task)
@@ -350,9 +351,7 @@ def ab_rounds(rounds: int, kind: str, ckpt: Path, work: Path, n: int, k: int,
     undone."""
     import statistics
 
-    undone = {"startup": "start-up undone", "tail": "scheduling undone",
-              "trace": "eager U-Net", "split": "encoder whole",
-              "exit": "server teardown"}[kind]
+    label, undone, _ = AB_KINDS[kind]
     walls: dict[str, list[float]] = {"as shipped": [], undone: []}
     digests: dict[str, set[str]] = {name: set() for name in walls}
     idles: dict[str, list[float]] = {name: [] for name in walls}
@@ -370,7 +369,6 @@ def ab_rounds(rounds: int, kind: str, ckpt: Path, work: Path, n: int, k: int,
                   f"success {agg['n_success']}/{n}, cores idle {idle:.1f} core-s", flush=True)
     med = {name: statistics.median(w) for name, w in walls.items()}
     idle_med = {name: statistics.median(w) for name, w in idles.items()}
-    label = {"startup": "f", "tail": "g", "trace": "h", "split": "i", "exit": "j"}[kind]
     print(f"({label}) {n} episodes, {k} envs, {rounds} alternating rounds: as shipped "
           f"{med['as shipped']:.1f} s against {med[undone]:.1f} s "
           f"({undone}; medians), {med[undone] / med['as shipped']:.2f}x; the same "
