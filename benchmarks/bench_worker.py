@@ -32,12 +32,14 @@ ROWS = [
 ]
 
 CHILD = r"""
-import json, resource, sys, time
+import json, os, resource, sys, time
 import numpy as np
 from so101_sim.harness.env_worker import EnvWorkerConfig
 from so101_sim.harness.frames import with_cameras
 from so101_sim.tasks import load_task
-size, mesh, resize, film, chunks = json.loads(sys.argv[1])
+size, mesh, resize, film, chunks, core = json.loads(sys.argv[1])
+if hasattr(os, "sched_setaffinity"):
+    os.sched_setaffinity(0, {core})
 cams = ("front", "side")
 cfg = EnvWorkerConfig(task=with_cameras(load_task("pick_place"), cams),
                       render_size=tuple(size), cameras=cams, env_state=False, n_obs_steps=2,
@@ -66,9 +68,7 @@ def _run(row: tuple, chunks: int, core: int) -> dict[str, float]:
     _, size, mesh, resize, film = row
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     env.setdefault("PYOPENGL_PLATFORM", env["MUJOCO_GL"])
-    cmd = [sys.executable, "-c", CHILD, json.dumps([size, mesh, resize, film, chunks])]
-    if hasattr(os, "sched_setaffinity"):
-        cmd = ["taskset", "-c", str(core), *cmd]
+    cmd = [sys.executable, "-c", CHILD, json.dumps([size, mesh, resize, film, chunks, core])]
     out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
     if out.returncode != 0:
         raise SystemExit(f"worker child failed for {row[0]!r}:\n{out.stderr[-2000:]}")
