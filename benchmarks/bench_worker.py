@@ -5,11 +5,12 @@
 Each row builds the worker `so101-sim eval` would build (``EnvWorkerConfig``: the pick_place
 task, front and side cameras, To=2, chunks of Ta=8 steps) in a child process pinned to one
 core, runs `--chunks` chunks from a few reset seeds with the arm held at its start pose, and
-reports CPU ms per chunk (``time.process_time``), split into physics and render time as the
-worker's replies report them. A chunk renders the two frames the policy reads (its last two
-steps); a filmed episode renders every step and encodes it too, so that row shows what a video
-adds. Rows run in rounds, in turn, so the machine's drift hits all alike; medians are printed.
-In a real eval 16 workers and the policy's forwards share the cores, so each costs more there.
+reports CPU ms per chunk (the child's and its finished children's, so a video's ffmpeg
+counts), split into physics and render time as the worker's replies report them. A chunk
+renders the two frames the policy reads (its last two steps); a filmed episode renders every
+step and encodes it too, so that row shows what a video adds. Rows run in rounds, in turn, so
+the machine's drift hits all alike; medians are printed. In a real eval 16 workers and the
+policy's forwards share the cores, so each costs more there.
 """
 
 from __future__ import annotations
@@ -83,6 +84,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.chunks < 1 or args.repeats < 1:
         p.error(f"--chunks {args.chunks} and --repeats {args.repeats} must both be >= 1")
+    cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else [0]
+    if args.core not in cores:
+        p.error(f"--core {args.core} is not a core this process may use; give one of {cores}")
     results: dict[str, list[dict[str, float]]] = {r[0]: [] for r in ROWS}
     for _ in range(args.repeats):
         for row in ROWS:
