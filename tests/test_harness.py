@@ -67,10 +67,19 @@ def test_expert_results_do_not_depend_on_n_envs(expert_k1, tmp_path):
 def test_diffusion_results_do_not_depend_on_n_envs(tiny_ckpt, short, tmp_path):
     policy = LeRobotPolicy(tiny_ckpt, log=lambda _: None)
     assert policy.batch_size == 8, "padded batches are position-independent here"
+    logs: dict[int, list[str]] = {1: [], 4: []}
     runs = {k: evaluate(policy, task=str(short), episodes=SEEDS, n_envs=k, videos=0,
-                        report=False, out_dir=tmp_path / f"k{k}", **_quiet())
+                        report=False, out_dir=tmp_path / f"k{k}", **_quiet(log=logs[k].append))
             for k in (1, 4)}
     assert _outcomes(runs[1]) == _outcomes(runs[4])
+    for k in (1, 4):  # the padding is named once, with the --n-envs that avoids it
+        assert sum("the rest is padding" in line and "--n-envs 8" in line
+                   for line in logs[k]) == 1, logs[k]
+    # every chunk is one row whatever the envs; one env pads each forward with 7 copies
+    rows = {k: r["config"]["policy_rows"] for k, r in runs.items()}
+    assert rows[1]["used"] == rows[4]["used"] > 0
+    assert rows[1]["computed"] == 8 * rows[1]["used"]
+    assert rows[4]["computed"] % 8 == 0 and rows[4]["computed"] < rows[1]["computed"]
     shas = {e["actions_sha"] for e in runs[1]["per_episode"]}
     assert len(shas) == SEEDS, "each seed samples its own diffusion noise"
     assert "faithful" in runs[1]["config"]["images"]
@@ -91,6 +100,8 @@ def test_pipelined_forwards_keep_results_per_seed(tiny_ckpt, short, tmp_path):
     # with 3 envs and 2 rows, the odd row's short forward ran beside a full one, not after it.
     for k, run in runs.items():
         assert run["config"]["forwards_in_flight"] == (2 if k > policy.batch_size else 1), k
+        rows = run["config"]["policy_rows"]
+        assert rows["computed"] % policy.batch_size == 0 and rows["computed"] >= rows["used"]
     policy.concurrent_forwards = False
     one = evaluate(policy, task=str(short), episodes=SEEDS, n_envs=5, videos=0, report=False,
                    out_dir=tmp_path / "one", **_quiet())

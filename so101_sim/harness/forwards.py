@@ -45,6 +45,11 @@ class Forwards:
         self.limit = CONCURRENT if concurrent else 1
         self.inflight: list[tuple[Future, list, list, float]] = []
         self.peak = 0  # most forwards ever in flight at once
+        # Rows the policy was asked for, and rows it computed: a policy with a ``batch_size``
+        # pads every forward to a multiple of it (same bits whatever the envs).
+        self._pad_to = int(getattr(policy, "batch_size", 0) or 0)
+        self.rows_used = 0
+        self.rows_computed = 0
         self._executor: ThreadPoolExecutor | None = None
         self._wake_r: Any = None
         self._wake_w: Any = None
@@ -85,6 +90,9 @@ class Forwards:
         env is stepping, so with no other forward in flight this one may take a second core
         (harness.policies.encoder_split) while the driver waits for it."""
         t0 = time.perf_counter()
+        n = len(requests)
+        self.rows_used += n
+        self.rows_computed += -(-n // self._pad_to) * self._pad_to if self._pad_to else n
         spare = alone and not self.inflight and self._can_spare
         if self._executor is None:
             fut: Future = Future()
@@ -97,6 +105,10 @@ class Forwards:
             fut.add_done_callback(self._signal)
         self.inflight.append((fut, requests, tokens, t0))
         self.peak = max(self.peak, len(self.inflight))
+
+    def rows_info(self) -> dict[str, int]:
+        """Rows asked for and rows computed (padding included), for ``eval_info.json``."""
+        return {"used": self.rows_used, "computed": self.rows_computed}
 
     def _timed(self, requests: list, spare: bool) -> tuple[Any, float]:
         with core_to_spare(spare):

@@ -146,13 +146,15 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
         f"{min(n_envs, max(1, len(todo)))} envs; images: {rendering.label}")
 
     t_start = time.perf_counter()
-    n_run, workers, in_flight = 0, PoolInfo(backend, 0), 0
+    n_run, workers = 0, PoolInfo(backend, 0)
+    forward_stats: dict[str, Any] = {"forwards_in_flight": 0,
+                                     "policy_rows": {"used": 0, "computed": 0}}
     reruns: list[dict[str, Any]] = []
     finished = False
     try:
         if todo:
             with torch_threads(threads or eval_policy_threads()):
-                n_run, workers, in_flight = _run(
+                n_run, workers, forward_stats = _run(
                     policy, run, spec, rendering, todo, done, seed_start, episodes, n_envs,
                     videos, worker_timeout_s, max_retries, progress, backend, ray_address,
                     reruns, log, sink, stop)
@@ -169,7 +171,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
         "aggregated": aggregated,
         "config": {**identity, "n_envs": n_envs, "images": rendering.label,
                    "policy_details": info.details, "workers": workers.to_dict(),
-                   "forwards_in_flight": in_flight,
+                   **forward_stats,
                    "reruns": reruns, "video_paths": [r.video for r in records if r.video],
                    **({"image_check": rendering.check} if rendering.check else {})},
     }
@@ -235,10 +237,11 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
          videos: int, worker_timeout_s: float, max_retries: int, progress: bool,
          backend: str, ray_address: str | None, reruns: list[dict[str, Any]],
          log: Callable[[str], None], sink: Any = None, stop: Any = None
-         ) -> tuple[int, PoolInfo, int]:
+         ) -> tuple[int, PoolInfo, dict[str, Any]]:
     """Run every seed in `todo`; add each finished episode to `done` and to the run folder
     (and, with a rollout `sink`, to its dataset), and each episode that had to be run again
-    to `reruns`. Returns (episodes run, workers, most policy forwards in flight at once)."""
+    to `reruns`. Returns (episodes run, workers, forward stats: the most forwards in flight
+    at once, and the policy rows used and computed)."""
     from tqdm import tqdm
 
     info = policy.info
@@ -248,6 +251,11 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                           mesh_width=rendering.mesh_width,
                           resize_to=rendering.input_size if rendering.resize else None)
     failures: Counter[int] = Counter()
+    pad_to = int(getattr(policy, "batch_size", 0) or 0)
+    if n_envs < pad_to:
+        log(f"so101-sim eval: {n_envs} env(s) fill at most {n_envs} of each {pad_to}-row policy "
+            f"forward, the rest is padding (actions per seed stay those of any --n-envs); "
+            f"--n-envs {pad_to} or more puts those rows to use")
     bar = tqdm(total=episodes, initial=len(done), unit="ep", disable=not progress,
                dynamic_ncols=True)
     n_run = 0
@@ -262,7 +270,7 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                       log=log)
     slots = [_Slot() for _ in range(pool.size)]
     # Rows per policy forward: the policy's own batch size (LeRobotPolicy pads to it), else all.
-    batch = max(1, int(getattr(policy, "batch_size", 0) or pool.size))
+    batch = pad_to or pool.size
     waiting: deque[int] = deque()  # slots that need a chunk, in the order they asked
 
     def fail(i: int, why: str) -> None:
@@ -370,7 +378,8 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
         forwards.close()
         pool.close()
         bar.close()
-    return n_run, workers, forwards.peak
+    return n_run, workers, {"forwards_in_flight": forwards.peak,
+                            "policy_rows": forwards.rows_info()}
 
 
 def _save_video(path: str | None, mp4: bytes | None) -> str | None:
