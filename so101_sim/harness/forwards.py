@@ -37,17 +37,22 @@ def _same_threads(n: int) -> None:
     torch.set_num_threads(n)
 
 
-class Forwards:
-    """Forwards in flight; ``finished`` hands back (requests, tokens, actions, seconds)."""
+def forward_stats(peak: int = 0, used: int = 0, computed: int = 0) -> dict[str, Any]:
+    """``eval_info.json``'s forward counts for one invocation: the most forwards in flight at
+    once, and the policy rows asked for and computed (padding included)."""
+    return {"forwards_in_flight": peak, "policy_rows": {"used": used, "computed": computed}}
 
-    def __init__(self, policy: Any, concurrent: bool) -> None:
+
+class Forwards:
+    """Forwards in flight; ``finished`` hands back (requests, tokens, actions, seconds).
+    ``pad_to``: the policy pads every forward to a multiple of this many rows (0: no padding)."""
+
+    def __init__(self, policy: Any, concurrent: bool, pad_to: int = 0) -> None:
         self.policy = policy
         self.limit = CONCURRENT if concurrent else 1
         self.inflight: list[tuple[Future, list, list, float]] = []
         self.peak = 0  # most forwards ever in flight at once
-        # Rows the policy was asked for, and rows it computed: a policy with a ``batch_size``
-        # pads every forward to a multiple of it (same bits whatever the envs).
-        self._pad_to = int(getattr(policy, "batch_size", 0) or 0)
+        self._pad_to = pad_to
         self.rows_used = 0
         self.rows_computed = 0
         self._executor: ThreadPoolExecutor | None = None
@@ -106,9 +111,8 @@ class Forwards:
         self.inflight.append((fut, requests, tokens, t0))
         self.peak = max(self.peak, len(self.inflight))
 
-    def rows_info(self) -> dict[str, int]:
-        """Rows asked for and rows computed (padding included), for ``eval_info.json``."""
-        return {"used": self.rows_used, "computed": self.rows_computed}
+    def stats(self) -> dict[str, Any]:
+        return forward_stats(self.peak, self.rows_used, self.rows_computed)
 
     def _timed(self, requests: list, spare: bool) -> tuple[Any, float]:
         with core_to_spare(spare):

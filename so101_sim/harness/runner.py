@@ -26,7 +26,7 @@ import numpy as np
 
 from so101_sim.dataset import EVAL_SEED_START
 from so101_sim.harness.env_worker import EnvWorkerConfig
-from so101_sim.harness.forwards import Forwards
+from so101_sim.harness.forwards import Forwards, forward_stats
 from so101_sim.harness.frames import Rendering, choose_rendering, to_policy_obs, with_cameras
 from so101_sim.harness.policies import ChunkRequest, EvalPolicy, load_policy
 from so101_sim.harness.results import (
@@ -147,14 +147,13 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
 
     t_start = time.perf_counter()
     n_run, workers = 0, PoolInfo(backend, 0)
-    forward_stats: dict[str, Any] = {"forwards_in_flight": 0,
-                                     "policy_rows": {"used": 0, "computed": 0}}
+    forwards_seen = forward_stats()
     reruns: list[dict[str, Any]] = []
     finished = False
     try:
         if todo:
             with torch_threads(threads or eval_policy_threads()):
-                n_run, workers, forward_stats = _run(
+                n_run, workers, forwards_seen = _run(
                     policy, run, spec, rendering, todo, done, seed_start, episodes, n_envs,
                     videos, worker_timeout_s, max_retries, progress, backend, ray_address,
                     reruns, log, sink, stop)
@@ -171,7 +170,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
         "aggregated": aggregated,
         "config": {**identity, "n_envs": n_envs, "images": rendering.label,
                    "policy_details": info.details, "workers": workers.to_dict(),
-                   **forward_stats,
+                   **forwards_seen,
                    "reruns": reruns, "video_paths": [r.video for r in records if r.video],
                    **({"image_check": rendering.check} if rendering.check else {})},
     }
@@ -348,7 +347,8 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
     # Two forwards in flight where the policy allows it (harness.forwards); else one.
     forwards = Forwards(policy, concurrent=backend == "local"
                         and Forwards.pair_helps(pool.size, batch)
-                        and bool(getattr(policy, "concurrent_forwards", False)))
+                        and bool(getattr(policy, "concurrent_forwards", False)),
+                        pad_to=pad_to)
     try:
         while todo or any(s.seed is not None for s in slots):
             for i, s in enumerate(slots):
@@ -378,8 +378,7 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
         forwards.close()
         pool.close()
         bar.close()
-    return n_run, workers, {"forwards_in_flight": forwards.peak,
-                            "policy_rows": forwards.rows_info()}
+    return n_run, workers, forwards.stats()
 
 
 def _save_video(path: str | None, mp4: bytes | None) -> str | None:
