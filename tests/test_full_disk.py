@@ -17,7 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from test_training import _tiny_preset
+from tiny_presets import tiny_preset
 
 from so101_sim.cli import main
 from so101_sim.dataset import stored_seeds
@@ -121,7 +121,7 @@ def test_train_checkpoint_on_a_full_disk(disk: Path, tmp_path: Path) -> None:
     """The step-4 checkpoint does not fit: one line, step 2 stays the last checkpoint (and
     loads); with more space, --resume finishes the run."""
     record(tmp_path / "ds", 2, image_size=(48, 64), progress=False)
-    tiny = _tiny_preset(tmp_path)
+    tiny = tiny_preset(tmp_path)
     out = disk / "run"
     subprocess.run(["mount", "-o", "remount,size=300m", str(disk)], check=True)
     args = ["train", "--preset", str(tiny), "--dataset", str(tmp_path / "ds"), "--threads",

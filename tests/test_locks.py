@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 import pytest
-from test_training import _tiny_preset
+from tiny_presets import tiny_preset
 
 from so101_sim.cli import main
 from so101_sim.harness.curve import CURVE_LOCK
@@ -42,7 +42,7 @@ def material(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     and export)."""
     root = tmp_path_factory.mktemp("locks")
     record(root / "ds", 2, image_size=SMALL, progress=False)
-    tiny = _tiny_preset(root)
+    tiny = tiny_preset(root)
     train(root / "ds", root / "run", preset_name=str(tiny), steps=2, threads=1,
           progress=False)
     ck = sorted((root / "run" / "checkpoints").glob("step_*"))[-1] / "pretrained_model"

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from tiny_presets import tiny_act_preset, tiny_preset
 
 from so101_sim.dataset import DEFAULT_REPO_ID
 from so101_sim.record import record
@@ -24,29 +25,6 @@ SMALL = (48, 64)
 FPS = 30
 
 
-def _shrunk_preset(tmp: Path, preset: str, name: str, edits: list[tuple[str, str]]) -> Path:
-    """policy/presets/<preset>.toml with `edits` applied (each must match), written as <name>."""
-    text = (Path(__file__).parents[1] / "policy" / "presets" / f"{preset}.toml").read_text()
-    for old, new in [(f'name = "{preset}"', f'name = "{name}"'),
-                     ("size = [60, 80]", "size = [24, 32]"), ("batch_size = 32", "batch_size = 4"),
-                     ("checkpoint_every = 500", "checkpoint_every = 2"),
-                     ("log_every = 50", "log_every = 1"), *edits]:
-        assert old in text, old
-        text = text.replace(old, new)
-    path = tmp / f"{name}.toml"
-    path.write_text(text)
-    return path
-
-
-def _tiny_preset(tmp: Path) -> Path:
-    """The cpu preset shrunk so a step takes milliseconds; same fields, same code path."""
-    return _shrunk_preset(tmp, "cpu", "tiny", [
-        ("steps = 10000", "steps = 4"), ("crop_shape = [54, 72]", "crop_shape = [22, 30]"),
-        ("down_dims = [48, 96, 192]", "down_dims = [16, 32, 64]"),
-        ("diffusion_step_embed_dim = 64", "diffusion_step_embed_dim = 16"),
-        ("spatial_softmax_num_keypoints = 32", "spatial_softmax_num_keypoints = 8")])
-
-
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("train") / "ds"
@@ -56,7 +34,7 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return _tiny_preset(tmp_path_factory.mktemp("preset"))
+    return tiny_preset(tmp_path_factory.mktemp("preset"))
 
 
 def test_seed_preset_has_the_walkthrough_shapes() -> None:
@@ -461,16 +439,6 @@ def test_a_preset_variant_states_only_what_differs(tmp_path: Path) -> None:
         load_preset(both)
 
 
-def _tiny_act_preset(tmp: Path) -> Path:
-    """policy/presets/act.toml shrunk so a step takes milliseconds; same fields, same path."""
-    return _shrunk_preset(tmp, "act", "tiny_act", [
-        ("steps = 30000", "steps = 4"), ("chunk_size = 32", "chunk_size = 8"),
-        ("n_action_steps = 8", "n_action_steps = 4"), ("dim_model = 256", "dim_model = 32"),
-        ("n_heads = 8", "n_heads = 2"), ("dim_feedforward = 1024", "dim_feedforward = 64"),
-        ("n_encoder_layers = 4", "n_encoder_layers = 1"),
-        ("n_vae_encoder_layers = 4", "n_vae_encoder_layers = 1")])
-
-
 def test_act_trains_from_its_preset_and_evaluates(dataset: Path, tmp_path: Path) -> None:
     """An [act] preset trains lerobot's ACTPolicy: batches as LeRobotDataset gives them for
     ACT (one frame, no time axis; actions t..t+chunk-1), a checkpoint lerobot loads as ACT,
@@ -483,7 +451,7 @@ def test_act_trains_from_its_preset_and_evaluates(dataset: Path, tmp_path: Path)
     from so101_sim.harness.policies.lerobot import LeRobotPolicy
     from so101_sim.train.checkpoint import load_checkpoint, read_train_info
 
-    tiny_act = _tiny_act_preset(tmp_path)
+    tiny_act = tiny_act_preset(tmp_path)
     preset = load_preset(tiny_act)
     assert preset.policy_type == "act" and preset.train.grad_clip_norm == 10.0
     cfg = make_config(preset, *policy_features(preset.image_size))
