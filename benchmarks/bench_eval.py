@@ -15,7 +15,8 @@ policy split (target: the shipped policy's 200 seeds in <= 100 s on 2 cores). It
 harness's default way (the smallest size that passes the self-check against the training
 data's size, then resize_frames) unless --image-size is given. It also prints the cores'
 busy time over the run (/proc/stat) and the wall that work needs at the least, spread
-perfectly over the cores: a target below that floor needs less work, not better scheduling.
+perfectly over the cores: a target below that floor needs less work, not better scheduling;
+and one digest of all its episodes' actions, to tell later runs whether they made the same ones.
 (b) with --compare-lerobot, the same checkpoint and seeds through `lerobot-eval
 --env.type=so101_pick_place` and through the harness, both rendering at the policy's input
 size (lerobot-eval cannot resize) and both writing 10 videos (lerobot-eval always does):
@@ -60,6 +61,7 @@ every episode, so only the timings mean anything.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import re
@@ -281,6 +283,7 @@ def main() -> None:
           f"render self-check), workers up in {info['config']['workers']['start_s']:.1f} s, "
           f"first episode done {first:.1f} s after its reset ({k} envs start together)")
     print(f"    {floor_line(busy, wall)}")
+    print(f"    actions digest {run_digest(info['per_episode'])} (same digest, same rollouts)")
     if args.paths:
         compare_variant("(c)", "faithful", wall, ckpt, work, n, k, task, ("--faithful",))
     if args.bf16:
@@ -315,6 +318,12 @@ def main() -> None:
     print(f"    harness: {floor_line(busy_h, w_h)}, so at most {w_l * CORES / busy_h:.2f}x "
           f"against this lerobot-eval run; 4x needs "
           + ("no less work" if need <= 1 else f"{100 * (1 - 1 / need):.0f}% less work"))
+
+
+def run_digest(per_episode: list[dict]) -> str:
+    """Every episode's action digest in seed order, hashed: compares runs whose folders are gone."""
+    lines = sorted(f"{e['seed']}:{e['actions_sha']}" for e in per_episode)
+    return hashlib.sha256("\n".join(lines).encode()).hexdigest()[:16]
 
 
 def floor_line(busy: float, wall: float) -> str:
