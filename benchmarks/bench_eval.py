@@ -322,7 +322,8 @@ def main() -> None:
 
 def run_digest(per_episode: list[dict]) -> str:
     """Every episode's action digest in seed order, hashed: compares runs whose folders are gone."""
-    lines = sorted(f"{e['seed']}:{e['actions_sha']}" for e in per_episode)
+    ordered = sorted(per_episode, key=lambda e: e["seed"])
+    lines = (f"{e['seed']}:{e['actions_sha']}" for e in ordered)
     return hashlib.sha256("\n".join(lines).encode()).hexdigest()[:16]
 
 
