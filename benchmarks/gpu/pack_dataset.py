@@ -1,7 +1,7 @@
 """Shrink a LeRobotDataset so it travels to a lent GPU machine (64 MiB per call, repo included).
 
     .venv/bin/python benchmarks/gpu/pack_dataset.py SRC OUT [--size 60x80] [--crf 14] [--workers 2]
-        [--drop-columns action_executed,initial_cube_pose,episode_seed]
+        [--drop-columns action_executed,initial_cube_pose,episode_seed] [--repeatable]
 
 The policy only ever sees frames resized to its input size, so each camera video is decoded
 here exactly as the trainer's frame cache decodes it (PyAV, `resize_frames`), and re-encoded
@@ -12,6 +12,14 @@ Parquet files keep their tables and are re-compressed with zstd (about 30% small
 lerobot's default; pyarrow reads either). `--drop-columns` removes per-frame features the
 trainer never reads (a 600-demo tidy recording: 29.9 -> 19.2 MB of tables). Prints the size
 and the per-pixel error of the re-encoding.
+
+The bytes of a pack are not always repeatable by default: on some CPUs x264's
+macroblock-tree reads memory it never initialised at these frame sizes, so the same frames
+encode differently in a process whose heap holds other data (at 60x80 on an AVX-512 EPYC,
+11 distinct files from 12 processes with scribbled heaps, against 1 from 12 with the tree off;
+on an AVX2 EPYC one set of bytes either way). `--repeatable` turns the tree off: the same
+bytes in any process, and so with `--workers`, for ~12% more bytes at equal error (crf 18
+against 14; benchmarks/README.md, "gpu/").
 """
 
 from __future__ import annotations
@@ -39,17 +47,18 @@ def _frames(path: Path, size: tuple[int, int]) -> np.ndarray:
     return resize_frames(np.stack(raw), size).numpy().transpose(0, 2, 3, 1).copy()
 
 
-def _encode(frames: np.ndarray, path: Path, fps: int, crf: int) -> None:
+def _encode(frames: np.ndarray, path: Path, fps: int, crf: int, repeatable: bool) -> None:
     with av.open(str(path), "w") as container:
         stream = container.add_stream("libx264", rate=fps)
         stream.height, stream.width = frames.shape[1:3]
         stream.pix_fmt = "yuv444p"
-        # one encoder thread: no thread scheduling inside x264, so that --workers (files in
-        # parallel, in forked processes) can match one process byte for byte. It does not
-        # always: below about 48x64 x264's macroblock-tree lookahead is not repeatable, and
-        # at 48x64 a --workers pack still differed now and then in CI, cause not found
-        # (tests/test_gpu_scripts.py, a known xfail). The frames stay as close to the source.
-        stream.options = {"crf": str(crf), "preset": "slow", "threads": "1"}
+        # one encoder thread: no thread scheduling inside x264. That alone is not enough for
+        # the same bytes: on some CPUs the macroblock-tree reads uninitialised memory at small
+        # sizes (the module docstring), so --repeatable turns it off.
+        options = {"crf": str(crf), "preset": "slow", "threads": "1"}
+        if repeatable:
+            options["x264-params"] = "mbtree=0"
+        stream.options = options
         for frame in frames:
             for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
                 container.mux(packet)
@@ -57,12 +66,13 @@ def _encode(frames: np.ndarray, path: Path, fps: int, crf: int) -> None:
             container.mux(packet)
 
 
-def _pack_video(job: tuple[Path, Path, tuple[int, int], int, int]) -> tuple[int, float, np.ndarray]:
+def _pack_video(job: tuple[Path, Path, tuple[int, int], int, int, bool],
+                ) -> tuple[int, float, np.ndarray]:
     """Re-encode one video; returns its frame count, size in MB and per-pixel errors."""
-    video, target, size, fps, crf = job
+    video, target, size, fps, crf, repeatable = job
     target.parent.mkdir(parents=True, exist_ok=True)
     frames = _frames(video, size)
-    _encode(frames, target, fps, crf)
+    _encode(frames, target, fps, crf, repeatable)
     with av.open(str(target)) as container:
         back = np.stack([f.to_ndarray(format="rgb24")
                          for f in container.decode(container.streams.video[0])])
@@ -88,7 +98,7 @@ def _drop_features(out: Path, drop: tuple[str, ...]) -> None:
 
 
 def pack(src: Path, out: Path, size: tuple[int, int], crf: int, fps: int = 30,
-         workers: int = 1, drop: tuple[str, ...] = ()) -> None:
+         workers: int = 1, drop: tuple[str, ...] = (), repeatable: bool = False) -> None:
     if not (src / "meta" / "info.json").is_file():
         raise SystemExit(f"{src}: no meta/info.json; expected a LeRobotDataset folder "
                          "(so101-sim record --out)")
@@ -103,7 +113,7 @@ def pack(src: Path, out: Path, size: tuple[int, int], crf: int, fps: int = 30,
             columns = columns.drop_columns(list(drop))
         pq.write_table(columns, table, compression="zstd", compression_level=19)
     videos = sorted(src.glob("videos/**/*.mp4"))
-    jobs = [(video, out / video.relative_to(src), size, fps, crf) for video in videos]
+    jobs = [(video, out / video.relative_to(src), size, fps, crf, repeatable) for video in videos]
     if workers > 1:
         with ProcessPoolExecutor(workers) as pool:
             results = list(pool.map(_pack_video, jobs))
@@ -132,10 +142,14 @@ def main() -> None:
                         help="comma-separated per-frame features the trainer does not read "
                              "(e.g. action_executed,initial_cube_pose,episode_seed), removed "
                              "from the tables and info.json to fit a large recording")
+    parser.add_argument("--repeatable", action="store_true",
+                        help="the same bytes from any process (x264's macroblock-tree off: "
+                             "~12%% more bytes at equal error, with --crf 4 higher)")
     args = parser.parse_args()
     h, w = (int(v) for v in args.size.lower().split("x"))
     drop = tuple(c for c in args.drop_columns.split(",") if c)
-    pack(args.src, args.out, (h, w), args.crf, workers=args.workers, drop=drop)
+    pack(args.src, args.out, (h, w), args.crf, workers=args.workers, drop=drop,
+         repeatable=args.repeatable)
 
 
 if __name__ == "__main__":
