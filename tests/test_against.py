@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -74,7 +75,7 @@ def test_the_expert_against_itself_is_not_worse(expert_run, tmp_path, capsys):
 
     out = tmp_path / "same"
     assert main(["eval", "--policy", "expert", "--against", str(expert_run), "--n-envs", "2",
-                 "--videos", "0", "--out", str(out)]) == 0
+                 "--videos", "0", "--out", str(out), "--task", "pick_place"]) == 0  # RUN's
     verdict = json.loads((out / "eval_info.json").read_text())["sequential_verdict"]
     assert verdict["verdict"] == "not worse" and verdict["episodes"] <= 60
     assert "sequential verdict: not worse" in capsys.readouterr().out
@@ -86,3 +87,35 @@ def test_max_episodes_gives_undecided(expert_run, tmp_path):
                               report=False, log=lambda _: None)
     assert result["sequential_verdict"]["verdict"] == "undecided"
     assert result["sequential_verdict"]["episodes"] == 5
+
+
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--task", "lift"], "--task lift given with --against .* measured on 'pick_place'"),
+    (["--task", "pick_place,lift"], "--task pick_place,lift given with --against"),
+    (["--episodes", "20"], "--episodes 20 given with --against: the seeds come from"),
+    (["--seed-start", "100010"], "--seed-start 100010 given with --against"),
+])
+def test_flags_the_run_decides_are_refused_beside_against(expert_run, tmp_path, capsys,
+                                                          flags, message):
+    """RUN decides the task and seeds; a flag that would be silently overridden is an error
+    naming it, before anything loads or runs."""
+    from so101_sim.cli import main
+
+    out = tmp_path / "refused"
+    assert main(["eval", "--policy", "expert", "--against", str(expert_run), "--out", str(out),
+                 *flags]) == 2
+    err = capsys.readouterr().err
+    assert re.search(message, err) and "drop" in err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("flags", [["--margin", "0.05"], ["--alpha", "0.01"],
+                                   ["--indifference", "0.2"], ["--max-episodes", "30"]])
+def test_sequential_flags_without_against_are_refused(tmp_path, capsys, flags):
+    from so101_sim.cli import main
+
+    out = tmp_path / "refused"
+    assert main(["eval", "--policy", "expert", "--episodes", "2", "--out", str(out),
+                 *flags]) == 2
+    err = capsys.readouterr().err
+    assert f"{flags[0]} given without --against" in err and not out.exists()

@@ -143,3 +143,23 @@ def test_gl_backend_line_is_printed_once_not_per_worker(tmp_path: Path) -> None:
                        env={**env, "HF_HUB_OFFLINE": "1"})
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stderr.count("MUJOCO_GL not set; rendering with") == 1, r.stderr[-2000:]
+
+
+def test_faithful_with_another_image_size_is_refused(capsys, tmp_path: Path) -> None:
+    """`--faithful --image-size 60x80` cannot be both: refused before anything runs, where
+    the size used to win silently. The recorded size itself is no contradiction."""
+    from so101_sim.cli import main
+    from so101_sim.harness.frames import choose_rendering
+    from so101_sim.harness.policies import PolicyInfo
+
+    out = tmp_path / "eval"
+    policy = str(Path(__file__).parents[1] / "policy" / "pick_place_diffusion")
+    assert main(["eval", "--policy", policy, "--faithful", "--image-size", "60x80",
+                 "--episodes", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--faithful renders at the training data's 480x640, but --image-size asks for " \
+           "60x80; drop one of them" in err
+    assert not out.exists()
+    info = PolicyInfo(name="p", cameras=("front",), image_size=(60, 80),
+                      train_image_size=(480, 640))
+    assert choose_rendering(info, (480, 640), faithful=True).label.startswith("faithful")

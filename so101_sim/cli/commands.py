@@ -77,9 +77,51 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+# eval's flags that --against decides, and those that mean something only with it
+EVAL_DEFAULTS = {"task": "pick_place", "episodes": 50, "seed_start": 100_000}
+AGAINST_DEFAULTS = {"margin": 0.0, "indifference": 0.10, "alpha": 0.05}
+
+
+def resolve_eval_flags(args: argparse.Namespace) -> None:
+    """Fill eval's defaults in `args`, refusing a flag the run would ignore: --task,
+    --episodes or --seed-start beside --against (RUN decides them), or a sequential-test
+    flag without --against."""
+    flag = {k: "--" + k.replace("_", "-") for k in (*EVAL_DEFAULTS, *AGAINST_DEFAULTS,
+                                                    "max_episodes")}
+    if args.against is None:
+        given = [flag[k] for k in (*AGAINST_DEFAULTS, "max_episodes")
+                 if getattr(args, k) is not None]
+        if given:
+            raise ValueError(f"{', '.join(given)} given without --against: "
+                             "they set the sequential test of `--against RUN`; add --against "
+                             "RUN (an earlier eval's --out folder) or drop them")
+        for key, value in EVAL_DEFAULTS.items():
+            if getattr(args, key) is None:
+                setattr(args, key, value)
+    else:
+        from so101_sim.harness.compare import load_run
+
+        run_task = load_run(args.against).task
+        for key in ("episodes", "seed_start"):
+            if getattr(args, key) is not None:
+                raise ValueError(f"{flag[key]} {getattr(args, key)} given with --against: "
+                                 f"the seeds come from {args.against}, in its order; drop "
+                                 f"{flag[key]} (--max-episodes N stops after N of them)")
+        if args.task is not None and args.task != run_task:
+            raise ValueError(f"--task {args.task} given with --against {args.against}, which "
+                             f"was measured on {run_task!r}: the paired test needs the same "
+                             "task; drop --task, or pick a RUN of that task")
+        args.task = run_task
+    for key, value in AGAINST_DEFAULTS.items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     from so101_sim.harness import evaluate, load_policy
     from so101_sim.utils.collector import startup_objects
+
+    resolve_eval_flags(args)
 
     options = {k: v for k, v in (("n_action_steps", args.n_action_steps),
                                  ("num_inference_steps", args.inference_steps),
@@ -106,10 +148,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
                 options["device"] = resolve_device(args.device)
             if not suite:
-                from so101_sim.harness.compare import load_run
-
-                task = load_run(args.against).task if args.against else args.task
-                policy = load_policy(args.policy, task=task, **options)
+                policy = load_policy(args.policy, task=args.task, **options)
         if suite:
             from so101_sim.harness.suite import evaluate_suite_from_args
 

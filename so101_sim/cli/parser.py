@@ -219,17 +219,19 @@ def build_parser() -> argparse.ArgumentParser:
                          "model.safetensors, saved processors; read as data: processor steps "
                          "must be ones lerobot registers) or 'package.module:factory', which "
                          "IMPORTS AND RUNS that Python code: use it only for your own code")
-    ev.add_argument("--task", default="pick_place",
-                    help="task name in envs/ or a .toml path; several as a,b,c or 'all' "
-                         "(one folder per task under --out, one table, eval_info.json "
-                         "grouped per task)")
-    ev.add_argument("--episodes", type=int, default=50)
+    ev.add_argument("--task", default=None,
+                    help="task name in envs/ or a .toml path (default pick_place; with "
+                         "--against, RUN's task); several as a,b,c or 'all' (one folder per "
+                         "task under --out, one table, eval_info.json grouped per task)")
+    ev.add_argument("--episodes", type=int, default=None,
+                    help="seeds to run (default 50; with --against, RUN's)")
     ev.add_argument("--n-envs", type=int, default=16,
                     help="env workers (default 16: two policy forwards of 8, so one half steps "
                          "while the policy runs the other's): processes, or Ray actors with "
                          "--backend ray; results per seed depend on neither")
-    ev.add_argument("--seed-start", type=int, default=100_000,
-                    help="first seed (default 100000; training seeds are below it)")
+    ev.add_argument("--seed-start", type=int, default=None,
+                    help="first seed (default 100000; training seeds are below it; with "
+                         "--against, RUN's)")
     ev.add_argument("--allow-train-seeds", action="store_true",
                     help="allow --seed-start below 100000 (measuring on training seeds)")
     ev.add_argument("--out", default=None,
@@ -245,14 +247,15 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--against", default=None, metavar="RUN",
                     help="an earlier `so101-sim eval --out` folder: run its seeds in order and "
                          "stop as soon as a sequential paired test decides 'worse' or 'not "
-                         "worse' (anytime-valid; --episodes and --seed-start come from RUN)")
-    ev.add_argument("--margin", type=float, default=0.0, metavar="M",
+                         "worse' (anytime-valid; the task and seeds come from RUN, "
+                         "--max-episodes caps them)")
+    ev.add_argument("--margin", type=float, default=None, metavar="M",
                     help="with --against: 'worse' means below RUN's rate by more than M "
                          "(a fraction, default 0)")
-    ev.add_argument("--indifference", type=float, default=0.10, metavar="D",
+    ev.add_argument("--indifference", type=float, default=None, metavar="D",
                     help="with --against: 'not worse' rules out a drop of M + D or more "
                          "(default 0.10, the regression the check is sized for)")
-    ev.add_argument("--alpha", type=float, default=0.05,
+    ev.add_argument("--alpha", type=float, default=None,
                     help="with --against: each wrong verdict's probability bound (default 0.05)")
     ev.add_argument("--max-episodes", type=int, default=None, metavar="N",
                     help="with --against: stop 'undecided' after N seeds (default: all of RUN's)")

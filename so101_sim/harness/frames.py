@@ -55,18 +55,22 @@ def with_cameras(task: TaskSpec, cameras: tuple[str, ...]) -> TaskSpec:
 
 
 def choose_rendering(info: PolicyInfo, image_size: tuple[int, int] | None,
-                     task: TaskSpec | None = None, faithful: bool = True,
+                     task: TaskSpec | None = None, faithful: bool = False,
                      log: Callable[[str], None] = print) -> Rendering:
     """Explicit `image_size` wins; else faithful (`faithful`, or no `task` to check on), else
-    the smallest render that passes the self-check against the faithful one."""
+    the smallest render that passes the self-check against the faithful one. `faithful` with
+    an `image_size` other than the recorded one is refused: one of them would be ignored."""
     if not info.cameras:
         size = tuple(image_size) if image_size else VIDEO_ONLY_SIZE
         return Rendering(size, None, f"no camera input (state only); videos rendered at "
                                      f"{_hw(size)}")
     inp = tuple(info.image_size)
+    recorded = tuple(info.train_image_size or inp)
+    if image_size and faithful and tuple(image_size) != recorded:
+        raise ValueError(f"--faithful renders at the training data's {_hw(recorded)}, but "
+                         f"--image-size asks for {_hw(tuple(image_size))}; drop one of them")
     if image_size:
         return _fixed(info, tuple(image_size), inp)
-    recorded = tuple(info.train_image_size or inp)
     candidates = _candidates(inp, recorded)
     if faithful or task is None or not candidates:
         return _fixed(info, recorded, inp)
