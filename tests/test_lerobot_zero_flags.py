@@ -16,6 +16,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 from tiny_policy import make_tiny_diffusion_checkpoint, short_task
 
+from so101_sim.harness.compare import load_run
 from so101_sim.lerobot_plugin import ENV_TYPE, SO101PickPlaceEnvConfig
 
 BIN = Path(sys.executable).parent
@@ -60,6 +61,10 @@ def test_lerobot_eval_runs_without_discovery_flags(tmp_path):
     info = json.loads((out / "eval_info.json").read_text())
     assert info["overall"]["n_episodes"] == 2
     assert "Traceback" not in run.stderr and "libtorchcodec" not in run.stderr
+    # its result keeps no seed per episode: `so101-sim compare` says so, not "edited"
+    with pytest.raises(ValueError, match=r"is lerobot-eval's result \(.*% on 2 episodes\), "
+                                         "which keeps no seed per episode"):
+        load_run(out)
 
     bad = subprocess.run([*cmd[:2], "--env.task=no_such_task", *cmd[3:]], capture_output=True,
                          text=True, timeout=600, env=env)

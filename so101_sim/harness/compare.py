@@ -60,6 +60,13 @@ def load_run(path: str | Path) -> RunSide:
     except (ValueError, UnicodeDecodeError) as exc:
         raise ValueError(f"{info_path} is not JSON ({exc}); expected the eval_info.json that "
                          "`so101-sim eval` writes") from None
+    if isinstance(info, dict) and "overall" in info and "per_episode" not in info:
+        overall = info["overall"] if isinstance(info["overall"], dict) else {}
+        raise ValueError(
+            f"{info_path} is lerobot-eval's result ({overall.get('pc_success', '?')}% on "
+            f"{overall.get('n_episodes', '?')} episodes), which keeps no seed per episode, so "
+            "it cannot be paired seed by seed; evaluate the checkpoint with `so101-sim eval "
+            "--policy CKPT --seed-start S --episodes N` (the seeds of the other run) instead")
     check_eval_info(info, info_path)  # a hand-edited "success": "no" is not a success
     try:
         cfg, episodes = info["config"], info["per_episode"]
