@@ -62,6 +62,14 @@ def test_demo_writes_video_and_one_png_per_camera(tmp_path):
         assert img.shape == (96, 128, 3) and img.std() > 5
 
 
+def test_demo_refuses_steps_with_grid(tmp_path, capsys):
+    from so101_sim.cli import main
+
+    assert main(["demo", "--grid", "2x2", "--steps", "30", "--out", str(tmp_path / "d")]) == 2
+    assert "--steps 30 given with --grid" in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()
+
+
 def test_cli_rejects_bad_image_size(capsys):
     from so101_sim.cli import main
 

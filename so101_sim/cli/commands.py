@@ -14,11 +14,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from so101_sim.record.demo import contact_sheet, parse_grid, run_demo
 
     if args.grid:  # one PNG of many seeds' first frames
+        if args.steps is not None:
+            raise ValueError(f"--steps {args.steps} given with --grid, which draws each seed's "
+                             "first frame only; drop --steps, or --grid for a rollout")
         sheet = contact_sheet(Path(args.out), args.task, parse_grid(args.grid), args.seed,
                               args.image_size or (240, 320))
         print(f"contact sheet: {sheet}")
         return 0
-    paths = run_demo(Path(args.out), steps=args.steps, image_size=args.image_size or (480, 640),
+    paths = run_demo(Path(args.out), steps=240 if args.steps is None else args.steps,
+                     image_size=args.image_size or (480, 640),
                      seed=args.seed, task=args.task)
     for name, path in paths.items():
         print(f"{name}: {path}")

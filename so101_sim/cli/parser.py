@@ -82,7 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="roll the env with a fixed action sequence; write an mp4 "
                                        "of front|side and one PNG per camera")
     demo.add_argument("--out", default="outputs/demo", help="output folder")
-    demo.add_argument("--steps", type=int, default=240)
+    demo.add_argument("--steps", type=int, default=None,
+                      help="env steps of the rollout (default 240; not with --grid)")
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--task", default="pick_place", help="task name in envs/ or a .toml path")
     demo.add_argument("--image-size", type=parse_image_size, default=None,
