@@ -64,6 +64,26 @@ def test_replay_is_deterministic(dataset: Path) -> None:
     assert replay(dataset, 1) < 1e-4
 
 
+def test_replay_names_a_folder_it_cannot_replay(tmp_path: Path) -> None:
+    """No dataset there, or a LeRobotDataset recorded elsewhere (no reset seed to re-simulate
+    from): one error saying which, not "episode 0 not in ... (0 episodes)"."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    with pytest.raises(FileNotFoundError, match="nope is not a LeRobotDataset"):
+        replay(tmp_path / "nope", 0)
+    vec = {"dtype": "float32", "shape": (6,), "names": list(FEATURE_NAMES)}
+    other = LeRobotDataset.create("someone/other", fps=FPS, root=tmp_path / "other",
+                                  features={"observation.state": vec, "action": vec},
+                                  use_videos=False)
+    for _ in range(3):
+        other.add_frame({"observation.state": np.zeros(6, np.float32),
+                         "action": np.zeros(6, np.float32), "task": "t"})
+    other.save_episode()
+    other.finalize()
+    with pytest.raises(ValueError, match="other has no episode_seed feature"):
+        replay(tmp_path / "other", 0)
+
+
 def test_evaluation_seeds_are_refused(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="evaluation range"):
         record(tmp_path / "ds", 1, seed_start=100_000, image_size=SMALL, progress=False)

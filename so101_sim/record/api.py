@@ -144,7 +144,15 @@ def replay(dataset_dir: str | Path, episode: int) -> float:
     re-simulated ``agent_pos`` over the episode; 0 because the simulation is deterministic.
     """
     root = Path(dataset_dir)
-    act_key = "action_executed" if "action_executed" in info_features(root) else "action"
+    if not (root / "meta" / "info.json").is_file():
+        raise FileNotFoundError(f"{root} is not a LeRobotDataset (no meta/info.json); expected "
+                                "the --out folder of `so101-sim record`")
+    features = info_features(root)
+    if "episode_seed" not in features:
+        raise ValueError(f"{root} has no episode_seed feature: replay re-simulates an episode "
+                         "from the reset seed `so101-sim record` stores, so it needs a dataset "
+                         "recorded by so101-sim")
+    act_key = "action_executed" if "action_executed" in features else "action"
     df = read_frames(root, ["episode_index", "frame_index", "episode_seed",
                              "observation.state", act_key])
     ep = df[df["episode_index"] == episode].sort_values("frame_index")
