@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from pathlib import Path
@@ -68,6 +69,13 @@ def test_a_broken_policy_is_declared_worse_early(expert_run, tmp_path):
     assert result["aggregated"]["n_episodes"] < 60
     saved = json.loads((out / "eval_info.json").read_text())
     assert saved["sequential_verdict"]["verdict"] == "worse"
+    # a stopped run with a gap (an episode past the prefix came back) as the next reference:
+    # the refusal says what it is and names the full run it was measured against
+    gapped = dataclasses.replace(_side({100000: True, 100002: True}), path=out)
+    with pytest.raises(ValueError, match=r"not consecutive .* it is an `eval --against` run, "
+                                         r"stopped once its test decided.*"
+                                         + re.escape(f"({expert_run})")):
+        AgainstRun(gapped)
 
 
 def test_the_expert_against_itself_is_not_worse(expert_run, tmp_path, capsys):

@@ -10,12 +10,14 @@ decides, the run stops (episodes still running are dropped) and ``eval_info.json
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 from so101_sim.dataset import EVAL_SEED_START
 from so101_sim.harness.compare import RunSide, load_run, seed_ranges
+from so101_sim.harness.results import INFO
 from so101_sim.harness.sequential import SequentialPairedTest, Verdict
 
 
@@ -29,8 +31,7 @@ class AgainstRun:
             raise ValueError(f"--against {reference.path}: the run holds no episodes")
         if seeds != list(range(seeds[0], seeds[0] + len(seeds))):
             raise ValueError(f"--against {reference.path}: its seeds are not consecutive "
-                             f"({seed_ranges(seeds)}); expected one finished `so101-sim eval` "
-                             "run")
+                             f"({seed_ranges(seeds)}); {_gap_reason(reference.path)}")
         self.reference = reference
         self.seeds = seeds if max_episodes is None else seeds[:max_episodes]
         self.test = SequentialPairedTest(margin, indifference, alpha,
@@ -77,3 +78,16 @@ def evaluate_against(policy: Any, run: str | Path, *, margin: float = 0.0,
                       seed_start=stop.seeds[0], stop=stop, log=log, **evaluate_kwargs)
     log(f"so101-sim eval: {stop.verdict().line()} against {run}")
     return result
+
+
+def _gap_reason(path: Path) -> str:
+    """What to pass instead of a run with gaps, in the words of its own eval_info.json."""
+    try:
+        stopped = json.loads((path / INFO).read_text(encoding="utf-8")).get("sequential_verdict")
+    except (OSError, ValueError, AttributeError):
+        stopped = None
+    if isinstance(stopped, dict):
+        return (f"it is an `eval --against` run, stopped once its test decided (episodes still "
+                f"running were dropped); pass a full `so101-sim eval` run instead, e.g. the one "
+                f"it was measured against ({stopped.get('against', '?')})")
+    return "expected one finished `so101-sim eval` run"
