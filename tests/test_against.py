@@ -89,6 +89,12 @@ def test_the_expert_against_itself_is_not_worse(expert_run, tmp_path, capsys):
     assert "sequential verdict: not worse" in capsys.readouterr().out
 
 
+def test_another_task_is_refused_before_anything_runs(expert_run, tmp_path):
+    with pytest.raises(ValueError, match=r"task 'lift' differs from .*'pick_place'"):
+        evaluate_against("expert", expert_run, task="lift", out_dir=tmp_path / "lift")
+    assert not (tmp_path / "lift").exists()
+
+
 def test_max_episodes_gives_undecided(expert_run, tmp_path):
     result = evaluate_against("expert", expert_run, max_episodes=5, n_envs=2,
                               out_dir=tmp_path / "short", videos=0, progress=False,

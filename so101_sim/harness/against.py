@@ -69,6 +69,13 @@ def evaluate_against(policy: Any, run: str | Path, *, margin: float = 0.0,
     from so101_sim.harness.runner import evaluate
 
     reference = load_run(run)
+    if task is not None:
+        from so101_sim.tasks import load_task
+
+        if load_task(task).name != reference.task:
+            raise ValueError(f"task {load_task(task).name!r} differs from {run}'s "
+                             f"{reference.task!r}: the paired test needs RUN's task; leave "
+                             "task out to use it")
     stop = AgainstRun(reference, margin, indifference, alpha, max_episodes)
     for key in ("episodes", "seed_start"):
         if key in evaluate_kwargs:
