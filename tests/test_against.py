@@ -133,3 +133,4 @@ def test_sequential_flags_without_against_are_refused(tmp_path, capsys, flags):
                  *flags]) == 2
     err = capsys.readouterr().err
     assert f"{flags[0]} given without --against" in err and not out.exists()
+

@@ -163,3 +163,14 @@ def test_faithful_with_another_image_size_is_refused(capsys, tmp_path: Path) -> 
     info = PolicyInfo(name="p", cameras=("front",), image_size=(60, 80),
                       train_image_size=(480, 640))
     assert choose_rendering(info, (480, 640), faithful=True).label.startswith("faithful")
+
+
+def test_resume_without_out_is_refused(tmp_path, capsys, monkeypatch):
+    """Without --out each run gets a new timestamped folder: --resume there resumed nothing
+    and silently ran a fresh evaluation."""
+    from so101_sim.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["eval", "--policy", "expert", "--episodes", "1", "--resume"]) == 2
+    assert "--resume given without --out" in capsys.readouterr().err
+    assert not (tmp_path / "outputs").exists()

@@ -186,6 +186,26 @@ def test_outputs_videos_report_and_resume(tmp_path, capsys):
         evaluate(_HoldStill(), episodes=5, out_dir=out, resume=True, **_quiet())
 
 
+def test_the_resume_command_of_a_run_without_out_names_its_folder(tmp_path, capsys,
+                                                                  monkeypatch):
+    """Without --out a run gets a new timestamped folder; the command that continues it (the
+    disk-full hint, the Ctrl-C line) carries --out with that folder, and it resumes there."""
+    import shlex
+
+    from so101_sim.utils.disk import resume_command
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["eval", "--policy", "expert", "--episodes", "1", "--n-envs", "1",
+                 "--videos", "0", "--image-size", "48x64"]) == 0
+    (folder,) = (tmp_path / "outputs" / "eval").iterdir()
+    argv = shlex.split(resume_command())
+    assert argv[-3:] == ["--out", str(folder.relative_to(tmp_path)), "--resume"]
+    capsys.readouterr()
+    assert main([*argv[1:-3], "--episodes", "2", *argv[-3:]]) == 0
+    assert "(1 done, 1 to run)" in capsys.readouterr().out
+    assert list((tmp_path / "outputs" / "eval").iterdir()) == [folder]
+
+
 def _strip_times(episodes: list[dict]) -> list[dict]:
     return [{k: v for k, v in e.items() if k not in ("seconds", "video")} for e in episodes]
 

@@ -88,8 +88,12 @@ AGAINST_DEFAULTS = {"margin": 0.0, "indifference": 0.10, "alpha": 0.05}
 
 def resolve_eval_flags(args: argparse.Namespace) -> None:
     """Fill eval's defaults in `args`, refusing a flag the run would ignore: --task,
-    --episodes or --seed-start beside --against (RUN decides them), or a sequential-test
-    flag without --against."""
+    --episodes or --seed-start beside --against (RUN decides them), a sequential-test flag
+    without --against, or --resume without --out."""
+    if args.resume and args.out is None:
+        raise ValueError("--resume given without --out: without it every run gets a new "
+                         "outputs/eval/<policy>-<task>-<time> folder, so there is nothing to "
+                         "resume; add --out FOLDER, the folder of the run to finish")
     flag = {k: "--" + k.replace("_", "-") for k in (*EVAL_DEFAULTS, *AGAINST_DEFAULTS,
                                                     "max_episodes")}
     if args.against is None:
@@ -173,9 +177,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
         evaluate(policy, task=args.task, episodes=args.episodes, seed_start=args.seed_start,
                  allow_train_seeds=args.allow_train_seeds, **common)
     except KeyboardInterrupt:
+        from so101_sim.utils.disk import resume_command
+
         saved = " and --save-rollouts" if args.save_rollouts else ""
         print(f"so101-sim eval: interrupted; every finished episode is in episodes.jsonl{saved} "
-              "(finish with the same arguments plus --resume)", file=sys.stderr)
+              f"(finish with: {resume_command()})", file=sys.stderr)
         return 130
     return 0
 

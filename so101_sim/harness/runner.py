@@ -39,6 +39,7 @@ from so101_sim.harness.results import (
 from so101_sim.harness.warmup import worker_preload
 from so101_sim.tasks import TaskSpec, load_task, task_ref
 from so101_sim.utils.devices import eval_policy_threads, torch_threads
+from so101_sim.utils.disk import note_default_out
 from so101_sim.utils.locks import lock_scope
 from so101_sim.workers import PoolInfo, Reply, check_backend, start_pool
 
@@ -105,6 +106,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
     if out_dir is None:
         stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
         out_dir = Path("outputs/eval") / f"{info.name}-{spec.name}-{stamp}"
+        note_default_out(out_dir)  # the command that resumes it names this folder
     run = RunDir(out_dir)
     lock_eval_folders(run.path, save_rollouts)  # another run writing them: refused here
     identity = {

@@ -19,6 +19,7 @@ from typing import Any
 from so101_sim.harness.stats import wilson_interval
 from so101_sim.tasks import available_tasks, load_task
 from so101_sim.utils.atomic import write_json_atomic
+from so101_sim.utils.disk import note_default_out
 
 SUITE_INFO = "eval_info.json"
 
@@ -53,6 +54,7 @@ def evaluate_suite(policy: str, tasks: Sequence[str], *,
     if out_dir is None:
         stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
         out_dir = Path("outputs/eval") / f"{Path(str(policy)).name}-suite-{stamp}"
+        note_default_out(out_dir)  # the command that resumes it names this folder
     out = Path(out_dir)
     specs = [load_task(task) for task in tasks]
     if str(policy) == "baseline":  # only the tasks with shipped weights; say which are left out

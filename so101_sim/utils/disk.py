@@ -56,13 +56,28 @@ def free_space(path: str | Path) -> str:
     return f"{free:.1f} TB"  # pragma: no cover
 
 
+def note_default_out(folder: str | Path) -> None:
+    """The registered command ran without --out and writes `folder`: the command that
+    continues it must name that folder, or it would start another new one."""
+    global _command
+    if _command is not None and "--out" not in _command:
+        _command = [*_command, "--out", str(folder)]
+
+
+def resume_command() -> str | None:
+    """The registered command with --resume (and its --out), or None outside the CLI."""
+    if _command is None:
+        return None
+    return shlex.join(_command if "--resume" in _command else [*_command, "--resume"])
+
+
 def again_hint(again: str) -> str:
     """How to continue after freeing space: the exact command when the CLI registered it."""
     if again == "resume":
-        if _command is None:
+        command = resume_command()
+        if command is None:
             return "free some space, then run the same command with --resume"
-        argv = _command if "--resume" in _command else [*_command, "--resume"]
-        return f"free some space, then run: {shlex.join(argv)}"
+        return f"free some space, then run: {command}"
     if _command is None:
         return "free some space, then run the same command again"
     return f"free some space, then run again: {shlex.join(_command)}"
