@@ -54,7 +54,7 @@ def load_run(path: str | Path) -> RunSide:
     if not info_path.is_file():
         raise FileNotFoundError(
             f"{path} has no {INFO}: expected the --out folder of a finished `so101-sim eval` "
-            "(an interrupted one is finished with the same arguments plus --resume)")
+            f"(an interrupted one is finished by its command with --out {path} --resume)")
     try:
         info = json.loads(info_path.read_text(encoding="utf-8"))
     except (ValueError, UnicodeDecodeError) as exc:
