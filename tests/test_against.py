@@ -15,6 +15,7 @@ from so101_sim.harness import PolicyInfo, StepPolicy, evaluate
 from so101_sim.harness.against import AgainstRun, evaluate_against
 from so101_sim.harness.compare import RunSide
 
+PICK_PLACE_TOML = Path(__file__).parents[1] / "envs" / "pick_place.toml"  # RUN's, as a path
 REST = np.array([-10.374, -81.670, 77.846, 2.681, 123.209, 6.495], dtype=np.float32)
 
 
@@ -83,7 +84,7 @@ def test_the_expert_against_itself_is_not_worse(expert_run, tmp_path, capsys):
 
     out = tmp_path / "same"
     assert main(["eval", "--policy", "expert", "--against", str(expert_run), "--n-envs", "2",
-                 "--videos", "0", "--out", str(out), "--task", "pick_place"]) == 0  # RUN's
+                 "--videos", "0", "--out", str(out), "--task", str(PICK_PLACE_TOML)]) == 0
     verdict = json.loads((out / "eval_info.json").read_text())["sequential_verdict"]
     assert verdict["verdict"] == "not worse" and verdict["episodes"] <= 60
     assert "sequential verdict: not worse" in capsys.readouterr().out
