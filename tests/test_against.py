@@ -91,7 +91,7 @@ def test_the_expert_against_itself_is_not_worse(expert_run, tmp_path, capsys):
 
 
 def test_another_task_is_refused_before_anything_runs(expert_run, tmp_path):
-    with pytest.raises(ValueError, match=r"task 'lift' differs from .*'pick_place'"):
+    with pytest.raises(ValueError, match=r"--task lift given with --against .*'pick_place'"):
         evaluate_against("expert", expert_run, task="lift", out_dir=tmp_path / "lift")
     assert not (tmp_path / "lift").exists()
 

@@ -107,32 +107,19 @@ def resolve_eval_flags(args: argparse.Namespace) -> None:
             if getattr(args, key) is None:
                 setattr(args, key, value)
     else:
+        from so101_sim.harness.against import reference_task
         from so101_sim.harness.compare import load_run
 
-        run_task = load_run(args.against).task
+        reference = load_run(args.against)
         for key in ("episodes", "seed_start"):
             if getattr(args, key) is not None:
                 raise ValueError(f"{flag[key]} {getattr(args, key)} given with --against: "
                                  f"the seeds come from {args.against}, in its order; drop "
                                  f"{flag[key]} (--max-episodes N stops after N of them)")
-        if args.task is not None and _task_name(args.task) != run_task:
-            raise ValueError(f"--task {args.task} given with --against {args.against}, which "
-                             f"was measured on {run_task!r}: the paired test needs the same "
-                             "task; drop --task, or pick a RUN of that task")
-        if args.task is None:  # a task file outside envs/ is passed as its path, as RUN's was
-            args.task = run_task
+        args.task = reference_task(reference, args.task)
     for key, value in AGAINST_DEFAULTS.items():
         if getattr(args, key) is None:
             setattr(args, key, value)
-
-
-def _task_name(task: str) -> str | None:
-    """The spec name of one task (a name or a .toml path); None for a list or 'all'."""
-    if "," in task or task == "all":
-        return None
-    from so101_sim.tasks import load_task
-
-    return load_task(task).name
 
 
 def cmd_eval(args: argparse.Namespace) -> int:

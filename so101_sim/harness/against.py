@@ -59,6 +59,23 @@ class AgainstRun:
                 "reference_policy": self.reference.policy}
 
 
+def reference_task(reference: RunSide, task: str | Path | None) -> str | Path:
+    """The task to run against `reference`: `task` (a name or a .toml path, e.g. a task file
+    outside envs/) when it is RUN's, RUN's task name when None; anything else is refused."""
+    if task is None:
+        return reference.task
+    name = None
+    if not ("," in str(task) or str(task) == "all"):  # a list of tasks is never one run's
+        from so101_sim.tasks import load_task
+
+        name = load_task(task).name
+    if name != reference.task:
+        raise ValueError(f"--task {task} given with --against {reference.path}, which was "
+                         f"measured on {reference.task!r}: the paired test needs the same "
+                         "task; drop --task, or pick a RUN of that task")
+    return task
+
+
 def evaluate_against(policy: Any, run: str | Path, *, margin: float = 0.0,
                      indifference: float = 0.10, alpha: float = 0.05,
                      max_episodes: int | None = None, task: Any = None,
@@ -69,19 +86,13 @@ def evaluate_against(policy: Any, run: str | Path, *, margin: float = 0.0,
     from so101_sim.harness.runner import evaluate
 
     reference = load_run(run)
-    if task is not None:
-        from so101_sim.tasks import load_task
-
-        if load_task(task).name != reference.task:
-            raise ValueError(f"task {load_task(task).name!r} differs from {run}'s "
-                             f"{reference.task!r}: the paired test needs RUN's task; leave "
-                             "task out to use it")
+    task = reference_task(reference, task)
     stop = AgainstRun(reference, margin, indifference, alpha, max_episodes)
     for key in ("episodes", "seed_start"):
         if key in evaluate_kwargs:
             raise ValueError(f"--against takes its seeds from {run}; drop {key}")
     evaluate_kwargs.setdefault("allow_train_seeds", stop.seeds[0] < EVAL_SEED_START)
-    result = evaluate(policy, task=task or reference.task, episodes=len(stop.seeds),
+    result = evaluate(policy, task=task, episodes=len(stop.seeds),
                       seed_start=stop.seeds[0], stop=stop, log=log, **evaluate_kwargs)
     log(f"so101-sim eval: {stop.verdict().line()} against {run}")
     return result
