@@ -174,3 +174,36 @@ def test_resume_without_out_is_refused(tmp_path, capsys, monkeypatch):
     assert main(["eval", "--policy", "expert", "--episodes", "1", "--resume"]) == 2
     assert "--resume given without --out" in capsys.readouterr().err
     assert not (tmp_path / "outputs").exists()
+
+
+@pytest.mark.parametrize("argv", [
+    ["demo", "--steps", "0"],
+    ["demo", "--steps", "-1"],
+    ["eval", "--policy", "expert", "--threads", "0"],
+    ["eval", "--policy", "expert", "--policy-batch", "0"],
+    ["train", "--dataset", "d", "--out", "o", "--threads", "-2"],
+])
+def test_counts_below_one_are_refused_by_the_parser(argv: list[str], capsys) -> None:
+    """A count below 1 used to write an empty demo mp4 (--steps 0), fail inside numpy
+    (--steps -1) or torch (train --threads -2) after minutes of frame decoding, or mean
+    'default' in silence (eval --threads 0)."""
+    from so101_sim.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    flag, value = argv[-2:]
+    assert f"argument {flag}: {value} is invalid; expected an integer >= 1" in \
+        capsys.readouterr().err
+
+
+def test_ray_connect_timeout_without_an_address_is_refused(capsys, tmp_path: Path) -> None:
+    """The timeout is how long to wait for the cluster at --ray-address; without one it was
+    ignored in silence."""
+    from so101_sim.cli import main
+
+    out = tmp_path / "eval"
+    assert main(["eval", "--policy", "expert", "--episodes", "1", "--ray-connect-timeout", "5",
+                 "--out", str(out)]) == 2
+    assert "--ray-connect-timeout 5 only applies with --ray-address" in capsys.readouterr().err
+    assert not out.exists()

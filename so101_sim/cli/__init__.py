@@ -19,6 +19,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     set_command(["so101-sim", *(sys.argv[1:] if argv is None else argv)])  # disk-full hint
     if getattr(args, "ray_connect_timeout", None) is not None:  # read by workers.ray_connect
+        if args.ray_address is None:  # without an address no cluster is waited for
+            print(f"so101-sim {args.command}: error: --ray-connect-timeout "
+                  f"{args.ray_connect_timeout:g} only applies with --ray-address (the seconds "
+                  "to wait for that cluster); add --backend ray --ray-address ADDR, or drop "
+                  "--ray-connect-timeout", file=sys.stderr)
+            return 2
         os.environ[CONNECT_TIMEOUT_ENV] = str(args.ray_connect_timeout)
     try:
         with signal_exit_code():  # SIGTERM exits 15 wherever in Ray it lands

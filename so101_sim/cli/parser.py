@@ -19,6 +19,18 @@ def parse_image_size(text: str) -> tuple[int, int]:
     return h, w
 
 
+def positive_int(text: str) -> int:
+    """argparse type for a count that must be >= 1 (steps, threads, rows per forward)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer; expected one >= 1"
+                                         ) from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} is invalid; expected an integer >= 1")
+    return value
+
+
 def parse_steps(text: str) -> list[int]:
     """`--steps 8000,12000` -> [8000, 12000]."""
     try:
@@ -82,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="roll the env with a fixed action sequence; write an mp4 "
                                        "of front|side and one PNG per camera")
     demo.add_argument("--out", default="outputs/demo", help="output folder")
-    demo.add_argument("--steps", type=int, default=None,
+    demo.add_argument("--steps", type=positive_int, default=None,
                       help="env steps of the rollout (default 240; not with --grid)")
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--task", default="pick_place", help="task name in envs/ or a .toml path")
@@ -168,7 +180,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="draw the frames around each close of the gripper (1.5 s before to "
                          "0.5 s after) FACTOR times as often as the rest, for policies whose "
                          "misses are imprecise grasps (default: every frame alike)")
-    tr.add_argument("--threads", type=int, default=None,
+    tr.add_argument("--threads", type=positive_int, default=None,
                     help="torch CPU threads, fixed and bitwise repeatable (default on CPU: "
                          "all cores when idle; with another job busy, the batch in one part "
                          "per core, one thread each)")
@@ -277,7 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "'off' runs an ensembling checkpoint chunk-wise (with "
                          "--n-action-steps); default: the checkpoint's (lerobot-eval's "
                          "--policy.temporal_ensemble_coeff)")
-    ev.add_argument("--threads", type=int, default=None,
+    ev.add_argument("--threads", type=positive_int, default=None,
                     help="torch CPU threads for the policy's forwards (default: half the cores, "
                          "at least 1: the env workers render on the rest, and a busy "
                          "neighbour cannot stall a thread pool)")
@@ -288,7 +300,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="policy forwards in fp32 (default) or bfloat16 autocast (faster on "
                          "CPUs with AVX512-BF16/AMX; outcomes can differ on a few seeds, see "
                          "benchmarks/README.md)")
-    ev.add_argument("--policy-batch", type=int, default=None,
+    ev.add_argument("--policy-batch", type=positive_int, default=None,
                     help="rows per policy forward, padded (default 8; 1 = one env per forward)")
     ev.add_argument("--camera-map", type=parse_camera_map_arg, default=None,
                     metavar="POLICY_CAM=ENV_CAM,...",

@@ -109,9 +109,13 @@ def _run_check(conn: Any, task: Any, cameras: tuple[str, ...], recorded: tuple[i
     from so101_sim.harness.frames import self_check
 
     try:
-        conn.send((True, self_check(task, cameras, recorded, inp)))
-    except Exception as exc:  # any failure: the driver checks again and reports it there
-        conn.send((False, repr(exc)))
+        try:
+            reply = (True, self_check(task, cameras, recorded, inp))
+        except Exception as exc:  # any failure: the driver checks again and reports it there
+            reply = (False, repr(exc))
+        conn.send(reply)
+    except OSError:  # the driver stopped first (e.g. it refused a flag): nobody to tell
+        pass
     finally:
         conn.close()
 
