@@ -207,3 +207,25 @@ def test_ray_connect_timeout_without_an_address_is_refused(capsys, tmp_path: Pat
                  "--out", str(out)]) == 2
     assert "--ray-connect-timeout 5 only applies with --ray-address" in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.parametrize(("choice", "message"), [
+    ({"steps": [3]}, r"--steps 3: .* has no checkpoint there \(saved steps: 2, 4\)"),
+    ({"every": -1}, "every=-1 is invalid; expected 0 .* or a step interval >= 1"),
+    ({"every": 3}, "--every 3: no checkpoint of .* is at a multiple of 3"),
+    ({"every": 4, "steps": [2]}, "no checkpoint .* at a multiple of 4 among --steps"),
+])
+def test_curve_choice_of_no_saved_checkpoint_is_refused(tmp_path: Path, choice: dict,
+                                                        message: str) -> None:
+    """`curve --steps 3` on a run saved at steps 2 and 4 printed the curve of the others as
+    if step 3 were done; --every -1 meant 'all'. Refused before any lock or folder."""
+    from so101_sim.harness.curve import evaluate_curve
+
+    for step in (2, 4):
+        model = tmp_path / "checkpoints" / f"step_{step:07d}" / "pretrained_model"
+        model.mkdir(parents=True)
+        (model / "model.safetensors").write_bytes(b"")  # only its presence is read
+    before = sorted(tmp_path.rglob("*"))
+    with pytest.raises(ValueError, match=message):
+        evaluate_curve(tmp_path, **choice)
+    assert sorted(tmp_path.rglob("*")) == before

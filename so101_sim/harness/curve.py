@@ -77,11 +77,30 @@ def evaluate_curve(run: str | Path, *, episodes: int = 32, every: int = 0, n_env
     if not checkpoints:
         raise ValueError(f"{run} holds no checkpoints/step_*/pretrained_model; pass the --out "
                          "folder of a `so101-sim train` run")
+    check_choice(run, [s for s, _ in checkpoints], every, steps)
     with folder_lock(run, "the learning curve", again="rerun", name=CURVE_LOCK):
         _evaluate_missing(run, checkpoints, episodes, every, n_envs, seed_start, steps, task,
                           progress, policy_options or {})
     return [r for r in read_curve(run, task, curve_variant(policy_options))
             if r.get("episodes") == episodes and r.get("seed_start") == seed_start]
+
+
+def check_choice(run: Path, saved: list[int], every: int, steps: list[int] | None) -> None:
+    """Refuse an `every` or `steps` that picks none of the `saved` steps, or a step that is
+    not there: either used to evaluate nothing, or something else, in silence."""
+    shown = "saved steps: " + (", ".join(map(str, saved)) if len(saved) <= 8 else
+                               f"{', '.join(map(str, saved[:4]))}, ..., "
+                               f"{', '.join(map(str, saved[-2:]))} ({len(saved)} in all)")
+    if every < 0:
+        raise ValueError(f"every={every} is invalid; expected 0 (every checkpoint) or a step "
+                         "interval >= 1, e.g. --every 2000")
+    missing = sorted(set(steps or ()) - set(saved))
+    if missing:
+        raise ValueError(f"--steps {','.join(map(str, missing))}: {run} has no checkpoint "
+                         f"there ({shown})")
+    if every > 0 and not any(s % every == 0 and (steps is None or s in steps) for s in saved):
+        raise ValueError(f"--every {every}: no checkpoint of {run} is at a multiple of "
+                         f"{every}{' among --steps' if steps else ''} ({shown})")
 
 
 def _evaluate_missing(run: Path, checkpoints: list[tuple[int, Path]], episodes: int,
