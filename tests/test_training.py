@@ -417,6 +417,53 @@ def test_success_curve_goes_into_the_card(dataset: Path, tiny: Path, tmp_path: P
         "eval_info_lift.json", "eval_info_pick_place.json"]
 
 
+def test_export_checks_what_an_eval_measured_and_what_it_replaces(
+        dataset: Path, tiny: Path, tmp_path: Path) -> None:
+    """An eval records its weights, the same digest for a checkpoint and its fp16 export, so
+    an export refuses an eval of other weights (its numbers would go into this card). An
+    export replaces its folder whole: a folder of other files is refused, another policy's
+    export needs replace=True, the same checkpoint again does not."""
+    from so101_sim.harness import evaluate
+    from so101_sim.harness.export import export_policy
+    from so101_sim.harness.policies.checks import weights_digest
+
+    run = tmp_path / "run"
+    train(dataset, run, preset_name=str(tiny), steps=4, progress=False)
+    two, four = (run / "checkpoints" / f"step_{s:07d}" / "pretrained_model" for s in (2, 4))
+    shipped = export_policy(four, tmp_path / "shipped")
+    assert weights_digest(shipped / "model.safetensors") == weights_digest(
+        four / "model.safetensors") != weights_digest(two / "model.safetensors")
+    evaluate(str(shipped), episodes=1, n_envs=1, out_dir=tmp_path / "ev", videos=0,
+             progress=False, report=False)
+    info = json.loads((tmp_path / "ev" / "eval_info.json").read_text())
+    assert info["config"]["policy_weights"] == weights_digest(four / "model.safetensors")
+    notes: list[str] = []
+    export_policy(four, shipped, tmp_path / "ev", log=notes.append)  # same weights: no flag
+    assert notes == [] and json.loads((shipped / "eval_info.json").read_text()) == info
+    with pytest.raises(ValueError, match=r"ev/eval_info.json measured other weights \(shipped"):
+        export_policy(two, tmp_path / "other", tmp_path / "ev")
+    with pytest.raises(ValueError, match="measured other weights"):
+        export_policy(two, tmp_path / "other", also_eval=[tmp_path / "ev"])
+    assert not (tmp_path / "other").exists()
+    with pytest.raises(ValueError, match=r"already holds another policy .* pass --replace"):
+        export_policy(two, shipped)
+    assert weights_digest(shipped / "model.safetensors") == info["config"]["policy_weights"]
+    export_policy(two, shipped, replace=True)
+    assert weights_digest(shipped / "model.safetensors") == weights_digest(
+        two / "model.safetensors")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me")
+    with pytest.raises(ValueError, match="holds other files, not an exported policy"):
+        export_policy(two, mine, replace=True)
+    assert (mine / "notes.txt").read_text() == "keep me"
+    # an eval from before weights were recorded: exported, with one line saying so
+    del info["config"]["policy_weights"]
+    (tmp_path / "ev" / "eval_info.json").write_text(json.dumps(info))
+    export_policy(four, tmp_path / "old", tmp_path / "ev", log=notes.append)
+    assert len(notes) == 1 and "names no weights" in notes[0]
+
+
 def test_a_preset_variant_states_only_what_differs(tmp_path: Path) -> None:
     """`base = "cpu"`: the variant is cpu.toml with its own sections' keys on top."""
     cpu, small = load_preset("cpu"), load_preset("cpu48")

@@ -244,7 +244,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     try:
         dest = export_policy(Path(args.checkpoint), Path(args.out),
                              [Path(d) for d in args.eval], args.hardware,
-                             [Path(d) for d in args.also_eval])
+                             [Path(d) for d in args.also_eval], replace=args.replace)
     except (FileNotFoundError, ValueError) as e:
         print(f"so101-sim export: {e}", file=sys.stderr)
         return 2

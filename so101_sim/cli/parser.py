@@ -214,7 +214,9 @@ def build_parser() -> argparse.ArgumentParser:
     ex = sub.add_parser("export", help="copy a trained checkpoint to a shippable folder: fp16 "
                                        "weights and a model card with harness numbers")
     ex.add_argument("checkpoint", help="a checkpoints/step_*/pretrained_model folder")
-    ex.add_argument("--out", default="policy/pick_place_diffusion")
+    ex.add_argument("--out", default="policy/pick_place_diffusion",
+                    help="the shippable folder (default policy/pick_place_diffusion, the "
+                         "shipped policy: overwriting another policy needs --replace)")
     ex.add_argument("--eval", action="append", default=[], metavar="DIR",
                     help="a `so101-sim eval --out` folder whose eval_info.json goes into the "
                          "card; repeat it once per task for a multi-task checkpoint (or give "
@@ -223,6 +225,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="more eval folders of the same checkpoint (e.g. the direct-render "
                          "path) shown in the card beside --eval; repeatable")
     ex.add_argument("--hardware", default="2-core CPU (no GPU)")
+    ex.add_argument("--replace", action="store_true",
+                    help="overwrite an --out that holds another policy (refused otherwise; "
+                         "exporting the same checkpoint again, e.g. with its eval, needs no "
+                         "flag)")
     ex.set_defaults(func=commands.cmd_export)
 
     ev = sub.add_parser("eval", help="evaluate a policy closed-loop on evaluation seeds: "

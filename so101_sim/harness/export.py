@@ -11,18 +11,15 @@ from __future__ import annotations
 
 import json
 import shutil
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from so101_sim.harness.curve import DEFAULT_TASK, plot_curve, read_curve, widest_rows
+from so101_sim.harness.policies.checks import ACT_TRAINING_ONLY, weights_digest
 from so101_sim.harness.results import INFO, check_eval_info
 from so101_sim.train.checkpoint import TRAIN_INFO, checkpoint_name
 from so101_sim.utils.locks import folder_lock
 from so101_sim.utils.trust import check_processor_files
-
-#: Weights of ACT's VAE encoder: it only encodes the demo's action chunk into the latent during
-#: training; at inference lerobot's ACT feeds a zero latent, so these never touch an action.
-ACT_TRAINING_ONLY = "model.vae_encoder"
 
 
 def _fp16_copy(src: Path, dst: Path, drop: str | None = None) -> int:
@@ -207,6 +204,39 @@ def _read_evals(eval_dirs: list[Path]) -> list[tuple[Path, dict]]:
     return found
 
 
+def check_measured(evals: list[tuple[Path, dict]], digest: str, checkpoint: Path,
+                   log: Callable[[str], None] = print) -> None:
+    """Refuse an eval of other weights than `checkpoint`'s (digest `digest`): its numbers
+    would go into this card. An eval written before evals recorded their weights gets one
+    line saying it was not checked."""
+    for path, e in evals:
+        measured = e["config"].get("policy_weights")
+        if measured is None:
+            log(f"so101-sim export: note: {path} names no weights (an eval from before "
+                "they were recorded); not checked that it measured this checkpoint")
+        elif measured != digest:
+            raise ValueError(f"{path} measured other weights ({e['config']['policy']}, "
+                             f"weights {measured}) than {checkpoint} (weights {digest}); "
+                             "evaluate this checkpoint or its export and pass that folder")
+
+
+def check_dest(dest: Path, digest: str, replace: bool) -> None:
+    """`dest` is replaced whole: refuse a folder of other files, and another checkpoint's
+    export unless `replace`. The same checkpoint again (e.g. with its eval) is fine."""
+    if not dest.exists() or (dest.is_dir() and not any(dest.iterdir())):
+        return
+    model = dest / "model.safetensors"
+    if not dest.is_dir() or not model.is_file() or not (dest / "config.json").is_file():
+        raise ValueError(f"--out {dest} holds other files, not an exported policy, and an "
+                         "export replaces its folder whole; choose a new or empty folder")
+    held = weights_digest(model)
+    if held != digest and not replace:
+        raise ValueError(f"--out {dest} already holds another policy (weights {held}; this "
+                         f"checkpoint's are {digest}); pass --replace to overwrite it, after "
+                         "`so101-sim compare` shows the new one is better, or choose "
+                         "another --out")
+
+
 def export_lock(dest: Path) -> Path:
     """The lock file of an export to `dest`: `dest` is replaced whole, so it lives beside it."""
     return dest.parent / f".{dest.name}.export.lock"
@@ -215,10 +245,12 @@ def export_lock(dest: Path) -> Path:
 def export_policy(checkpoint: Path, dest: Path,
                   eval_dir: Path | Sequence[Path] | None = None,
                   hardware: str = "2-core CPU (no GPU)",
-                  also_eval: list[Path] | None = None) -> Path:
+                  also_eval: list[Path] | None = None, replace: bool = False,
+                  log: Callable[[str], None] = print) -> Path:
     """Copy `checkpoint` (a pretrained_model folder) to `dest` with fp16 weights and a card.
 
-    `eval_dir`: one eval folder, several (one per task), or a multi-task suite eval folder."""
+    `eval_dir`: one eval folder, several (one per task), or a multi-task suite eval folder;
+    each must have measured these weights. `replace`: `dest` may hold another policy."""
     checkpoint, dest = Path(checkpoint), Path(dest)
     info_path = checkpoint / TRAIN_INFO
     if not (checkpoint / "model.safetensors").is_file() or not info_path.is_file():
@@ -229,10 +261,13 @@ def export_policy(checkpoint: Path, dest: Path,
     dirs = [] if eval_dir is None else [eval_dir] if isinstance(eval_dir, (str, Path)) \
         else list(eval_dir)
     evals = _read_evals(dirs)
-    also = [e for _, e in _read_evals(also_eval or [])]
+    also = _read_evals(also_eval or [])
+    digest = weights_digest(checkpoint / "model.safetensors")
+    check_measured(evals + also, digest, checkpoint, log)
     with folder_lock(dest.parent, f"the export {dest.name}", again="rerun",
                      name=export_lock(dest).name):
-        return _export(checkpoint, dest, info_path, evals, hardware, also)
+        check_dest(dest, digest, replace)
+        return _export(checkpoint, dest, info_path, evals, hardware, [e for _, e in also])
 
 
 def _export(checkpoint: Path, dest: Path, info_path: Path, evals: list[tuple[Path, dict]],

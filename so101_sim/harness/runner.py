@@ -172,6 +172,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
         "aggregated": aggregated,
         "config": {**identity, "n_envs": n_envs, "images": rendering.label,
                    "policy_details": info.details, "workers": workers.to_dict(),
+                   **({"policy_weights": info.weights} if info.weights else {}),
                    **forwards_seen,
                    "reruns": reruns, "video_paths": [r.video for r in records if r.video],
                    **({"image_check": rendering.check} if rendering.check else {})},

@@ -1,4 +1,4 @@
-"""What a lerobot checkpoint must look like for the env to feed it, and its fingerprint."""
+"""What a lerobot checkpoint must look like for the env to feed it, and its fingerprints."""
 
 from __future__ import annotations
 
@@ -14,6 +14,9 @@ from so101_sim.train.checkpoint import TRAIN_INFO
 STATE_KEY = "observation.state"
 ENV_STATE_KEY = "observation.environment_state"
 IMAGE_PREFIX = "observation.images."
+#: Weights of ACT's VAE encoder: it only encodes the demo's action chunk into the latent during
+#: training; at inference lerobot's ACT feeds a zero latent, so these never touch an action.
+ACT_TRAINING_ONLY = "model.vae_encoder"
 
 
 def check_features(cfg: Any, path: Path) -> tuple[tuple[str, ...], Any, bool]:
@@ -68,4 +71,19 @@ def fingerprint(path: Path, settings: dict[str, Any]) -> str:
                 for block in iter(lambda: fh.read(1 << 20), b""):
                     h.update(block)
     h.update(json.dumps(settings, sort_keys=True).encode())
+    return h.hexdigest()[:16]
+
+
+def weights_digest(model_file: Path) -> str:
+    """sha256 of the weights alone, each floating tensor as fp16, leaving out ACT's VAE
+    encoder: the same for a checkpoint and its `so101-sim export` copy (fp16, no VAE
+    encoder), so an export can tell whether an eval measured these weights."""
+    from safetensors.torch import load_file
+
+    h = hashlib.sha256()
+    state = load_file(model_file)
+    for name in sorted(k for k in state if not k.startswith(ACT_TRAINING_ONLY)):
+        t = state[name].half() if state[name].is_floating_point() else state[name]
+        h.update(f"{name}:{t.dtype}:{tuple(t.shape)}".encode())
+        h.update(t.contiguous().numpy().tobytes())
     return h.hexdigest()[:16]

@@ -38,7 +38,7 @@ from so101_sim.harness.camera_map import (
     resolve_camera_map,
     shown_camera_map,
 )
-from so101_sim.harness.policies.checks import check_features, fingerprint
+from so101_sim.harness.policies.checks import check_features, fingerprint, weights_digest
 from so101_sim.harness.policies.encoder_split import use_split_encoder
 from so101_sim.harness.policies.pooling import use_channels_last_pooling
 from so101_sim.harness.policies.protocol import ChunkRequest, PolicyInfo
@@ -159,6 +159,7 @@ class LeRobotPolicy:
                                                  **({"precision": precision}
                                                     if precision != "fp32" else {}),
                                                  **({"camera_map": renamed} if renamed else {})}),
+            weights=weights_digest(self.path / "model.safetensors"),
             details=self._details(), camera_map=renamed)
 
     # --------------------------------------------------------------------- settings

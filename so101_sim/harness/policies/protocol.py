@@ -36,7 +36,9 @@ class PolicyInfo:
     its training frames were recorded at (the default render size: the faithful path).
     ``n_obs_steps``: observations per request (To). ``n_action_steps``: actions returned per
     request and executed before the next one (Ta). ``fingerprint``: identifies the weights and
-    settings, so ``--resume`` can refuse a different policy. ``details``: shown in the report.
+    settings, so ``--resume`` can refuse a different policy. ``weights``: the weights alone
+    (``checks.weights_digest``), so an export can tell which checkpoint a result measured.
+    ``details``: shown in the report.
     ``camera_map``: policy camera name -> env camera, for inputs named unlike the env's
     cameras (``--camera-map``); ``cameras`` lists the env cameras, which are what is rendered.
     """
@@ -49,6 +51,7 @@ class PolicyInfo:
     n_obs_steps: int = 1
     n_action_steps: int = 1
     fingerprint: str = ""
+    weights: str = ""
     details: dict[str, Any] = field(default_factory=dict)
     camera_map: dict[str, str] = field(default_factory=dict)
 
