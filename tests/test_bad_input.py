@@ -229,3 +229,18 @@ def test_curve_choice_of_no_saved_checkpoint_is_refused(tmp_path: Path, choice: 
     with pytest.raises(ValueError, match=message):
         evaluate_curve(tmp_path, **choice)
     assert sorted(tmp_path.rglob("*")) == before
+
+
+def test_eval_into_a_checkpoint_folder_is_refused(tmp_path: Path) -> None:
+    """`--out` the policy's own folder wrote eval_info.json over the one its export keeps
+    for its card."""
+    from so101_sim.harness import evaluate
+
+    folder = tmp_path / "policy"
+    folder.mkdir()
+    (folder / "model.safetensors").write_bytes(b"weights")
+    (folder / "eval_info.json").write_text('{"recorded": true}')
+    with pytest.raises(ValueError, match=r"holds a policy checkpoint .* choose another --out"):
+        evaluate("expert", episodes=1, n_envs=1, out_dir=folder, videos=0, progress=False)
+    assert sorted(p.name for p in folder.iterdir()) == ["eval_info.json", "model.safetensors"]
+    assert (folder / "eval_info.json").read_text() == '{"recorded": true}'

@@ -66,6 +66,10 @@ class RunDir:
         """Create the folder, or check it for ``--resume``; return the episodes already done.
         A count named in `may_grow` (``episodes``: the seeds run in order, so a longer run
         starts with the shorter one's seeds) may be larger than the folder's on resume."""
+        if (self.path / "model.safetensors").is_file():  # e.g. --out the --policy folder
+            raise ValueError(f"{self.path} holds a policy checkpoint (model.safetensors); an "
+                             f"eval writes {INFO} and report.md there, over an export's "
+                             "recorded result; choose another --out")
         if self.episodes_path.exists() and not resume:
             raise ValueError(f"{self.path} already holds an evaluation ({EPISODES}); pass "
                              "--resume to finish it, or choose another --out")
