@@ -89,7 +89,8 @@ def test_bad_camera_map_is_a_usage_error(capsys):
         main(["eval", "--policy", "expert", "--camera-map", "top"])
     assert "POLICY_CAMERA=ENV_CAMERA" in capsys.readouterr().err
     assert main(["eval", "--policy", "expert", "--camera-map", MAP, "--episodes", "1"]) == 2
-    assert "apply to lerobot checkpoints" in capsys.readouterr().err
+    assert "--camera-map (camera_map) applies to lerobot checkpoints, not to --policy " \
+        "expert; drop it" in capsys.readouterr().err
 
 
 def test_one_env_camera_for_two_policy_cameras_is_said_and_shown(ckpts, tmp_path, capsys):

@@ -368,8 +368,13 @@ def test_inference_overrides_are_checked(tiny_ckpt):
         LeRobotPolicy(tiny_ckpt, n_action_steps=20, log=messages.append)
     with pytest.raises(ValueError, match=r"--temporal-ensemble nan is invalid"):
         LeRobotPolicy(tiny_ckpt, temporal_ensemble_coeff=float("nan"), log=messages.append)
-    with pytest.raises(ValueError, match="apply to lerobot checkpoints"):
+    with pytest.raises(ValueError, match=r"--policy-batch \(batch_size\) applies to lerobot "
+                                         "checkpoints, not to --policy expert"):
         load_policy("expert", batch_size=4)
+    with pytest.raises(ValueError, match=r"--policy-batch \(batch_size\), --precision "
+                                         r"\(precision\) apply to lerobot checkpoints, not to "
+                                         "--policy mypkg.policies:make; drop them"):
+        load_policy("mypkg.policies:make", batch_size=4, precision="bf16")  # was ignored
 
 
 def test_worker_side_resize_gives_the_driver_resize_bit_for_bit():

@@ -11,6 +11,22 @@ from so101_sim.expert import ScriptedExpert
 from so101_sim.harness.policies.protocol import EvalPolicy, PolicyInfo, StepPolicy
 from so101_sim.tasks import TaskSpec, load_task
 
+#: ``load_policy``'s lerobot options and the ``so101-sim eval`` flags that set them
+OPTION_FLAGS = {"n_action_steps": "--n-action-steps", "num_inference_steps": "--inference-steps",
+                "noise_scheduler": "--noise-scheduler",
+                "temporal_ensemble_coeff": "--temporal-ensemble", "batch_size": "--policy-batch",
+                "precision": "--precision", "camera_map": "--camera-map", "device": "--device"}
+
+
+def refuse_options(options: dict[str, Any], policy: str) -> None:
+    """Options only a lerobot checkpoint reads, given to another policy: refused, not
+    ignored."""
+    if options:
+        named = ", ".join(f"{OPTION_FLAGS.get(k, k)} ({k})" for k in sorted(options))
+        raise ValueError(f"{named} appl{'y' if len(options) > 1 else 'ies'} to lerobot "
+                         f"checkpoints, not to --policy {policy}; drop "
+                         f"{'them' if len(options) > 1 else 'it'}")
+
 
 def expert_policy(task: str | Path | TaskSpec = "pick_place") -> StepPolicy:
     """The scripted expert as an ``EvalPolicy`` (reads the true cube pose: no cameras)."""
@@ -31,12 +47,11 @@ def load_policy(spec: str | Path, task: str | Path | TaskSpec = "pick_place",
 
         text = str(baseline_checkpoint(load_task(task)))
     if text == "expert":
-        if lerobot_options:
-            raise ValueError(f"options {sorted(lerobot_options)} apply to lerobot checkpoints, "
-                             "not to --policy expert")
+        refuse_options(lerobot_options, text)
         return expert_policy(task)
     path = Path(text).expanduser()
     if not path.exists() and ":" in text and "/" not in text.split(":", 1)[0]:
+        refuse_options(lerobot_options, text)  # a factory takes only the task
         return _load_factory(text, task)
     from so101_sim.harness.policies.lerobot import LeRobotPolicy
 
