@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from so101_sim.cli import main
-from so101_sim.dataset import DEFAULT_REPO_ID, SIDECAR, stored_seeds
+from so101_sim.dataset import DEFAULT_REPO_ID, SIDECAR, read_sidecar, stored_seeds
 from so101_sim.record import record, replay
 from so101_sim.utils.units import FEATURE_NAMES
 
@@ -93,6 +93,25 @@ def test_evaluation_seeds_are_refused(tmp_path: Path) -> None:
 def test_existing_dataset_needs_resume(dataset: Path) -> None:
     with pytest.raises(ValueError, match="--resume"):
         record(dataset, 3, image_size=SMALL, progress=False)
+
+
+def test_resume_keeps_the_datasets_task_and_image_size(tmp_path: Path) -> None:
+    """`record --resume` without --task/--image-size continues the dataset as it is; before,
+    it recorded 480x640 or refused, and another --task was dropped in silence (the stored
+    task recorded instead)."""
+    root = tmp_path / "lift"
+    record(root, 1, task="lift", image_size=SMALL, progress=False)
+    assert record(root, 2, resume=True, progress=False)["new_episodes"] == 1
+    side = read_sidecar(root)
+    assert (side["task"], side["image_size"]) == ("lift", list(SMALL))
+    assert _load(root)[0]["observation.images.front"].shape == (3, *SMALL)
+    with pytest.raises(ValueError, match=f"{root} holds lift demos, not pick_place; resume "
+                                         "without --task"):
+        record(root, 3, resume=True, task="pick_place", progress=False)
+    with pytest.raises(ValueError, match=r"recorded at 48x64, not 96x128; resume with "
+                                         "--image-size 48x64"):
+        record(root, 3, resume=True, image_size=(96, 128), progress=False)
+    assert _load(root).num_episodes == 2
 
 
 def _cli(*args: str) -> list[str]:

@@ -107,12 +107,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     rec = sub.add_parser("record", help="record scripted-expert demonstrations as a "
                                         "LeRobotDataset v3 (training seeds only)")
-    rec.add_argument("--task", default="pick_place", help="task name in envs/ or a .toml path")
+    rec.add_argument("--task", default=None,
+                     help="task name in envs/ or a .toml path (default pick_place; a resumed "
+                          "dataset keeps its own)")
     rec.add_argument("--episodes", type=int, required=True, help="episodes wanted in the dataset")
     rec.add_argument("--out", required=True, help="dataset folder (the LeRobotDataset root)")
     rec.add_argument("--seed-start", type=int, default=0, help="first reset seed (0..99999)")
-    rec.add_argument("--image-size", type=parse_image_size, default=(480, 640),
-                     help="HEIGHTxWIDTH of each camera (default 480x640)")
+    rec.add_argument("--image-size", type=parse_image_size, default=None,
+                     help="HEIGHTxWIDTH of each camera (default 480x640; a resumed dataset "
+                          "keeps its own)")
     rec.add_argument("--cameras", type=parse_cameras, default=None,
                      help="cameras to record, comma-separated from front, side, wrist "
                           "(default the task's: front,side); e.g. front,side,wrist")

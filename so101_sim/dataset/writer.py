@@ -98,8 +98,10 @@ def _resume_settings(root: Path, side: dict[str, Any], image_size: tuple[int, in
                      dart_noise: float, vcodec: str | None, expert: dict[str, Any]) -> str:
     """The codec of the dataset being resumed; refuses settings that differ from its own."""
     if side.get("image_size") and tuple(side["image_size"]) != image_size:
-        raise ValueError(f"{root} was recorded at {side['image_size'][0]}x"
-                         f"{side['image_size'][1]}; resume with --image-size to match")
+        size = "x".join(str(v) for v in side["image_size"])
+        raise ValueError(f"{root} was recorded at {size}, not "
+                         f"{image_size[0]}x{image_size[1]}; resume with --image-size {size} "
+                         "(a dataset holds one image size)")
     old_noise = float(side.get("dart_noise", 0.0))
     if old_noise != dart_noise:
         raise ValueError(f"{root} was recorded with --dart-noise {old_noise:g}, not "

@@ -61,18 +61,28 @@ def _check_args(n_episodes: int, workers: int, seed_start: int, vcodec: str | No
 
 
 
-def _task_arg(task: str | Path, root: Path, resume: bool) -> str:
-    """The task as stored in the sidecar: a name, or an absolute .toml path."""
-    if resume and (root / SIDECAR).exists():
-        return str(read_sidecar(root).get("task", task))
+DEFAULT_TASK, DEFAULT_IMAGE_SIZE = "pick_place", (480, 640)
+
+
+def _task_arg(task: str | Path | None, stored: dict[str, Any], root: Path) -> str:
+    """The task as the sidecar stores it (a name, or an absolute .toml path): a resumed
+    dataset's own, refusing another one by name."""
+    if stored:
+        own = str(stored.get("task", DEFAULT_TASK))
+        if task is not None and load_task(task).name != load_task(own).name:
+            raise ValueError(f"{root} holds {load_task(own).name} demos, not "
+                             f"{load_task(task).name}; resume without --task, or record "
+                             "another task into another --out (a dataset holds one task)")
+        return own
+    task = DEFAULT_TASK if task is None else task
     return str(Path(task).resolve()) if Path(str(task)).suffix == ".toml" else str(task)
 
 
 # ----------------------------------------------------------------------------- record
 
 
-def record(out_dir: str | Path, n_episodes: int, task: str | Path = "pick_place",
-           seed_start: int = 0, image_size: tuple[int, int] = (480, 640),
+def record(out_dir: str | Path, n_episodes: int, task: str | Path | None = None,
+           seed_start: int = 0, image_size: tuple[int, int] | None = None,
            cameras: Sequence[str] | None = None, keep_failures: bool = False,
            resume: bool = False, workers: int = 1,
            repo_id: str = DEFAULT_REPO_ID, progress: bool = True, dart_noise: float = 0.0,
@@ -89,7 +99,8 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path = "pick_place"
     `checkpoint_every` episodes and on any exit we can catch (Ctrl-C, SIGTERM); after a hard
     kill, `resume` recovers every finished episode (see ``dataset.store``). `cameras` are the
     cameras recorded (default the task's; ``("front", "side", "wrist")`` adds the wrist); a
-    resumed dataset keeps its own. `vcodec` is
+    resumed dataset keeps its own, as it keeps its `task` (default pick_place) and
+    `image_size` (default 480x640) when they are None. `vcodec` is
     ``"h264"`` (default for new datasets) or ``"libsvtav1"``; a resumed dataset keeps its own.
     `dart_noise` is the std of the noise added to executed actions (``run_episode``), 0 for
     none; `recover` and `grasp_clearance` are ScriptedExpert options (retries; gap between
@@ -112,9 +123,12 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path = "pick_place"
     quiet_libav()
     select_gl_backend()  # choose (and print) once here: workers inherit MUJOCO_GL
     root = Path(out_dir)
-    image_size = (int(image_size[0]), int(image_size[1]))
     with folder_lock(root, "the dataset"):  # one writer; taken before anything is written
-        task_arg = _task_arg(task, root, resume)
+        stored = read_sidecar(root) if resume and (root / SIDECAR).exists() else {}
+        task_arg = _task_arg(task, stored, root)
+        if image_size is None:
+            image_size = stored.get("image_size") or DEFAULT_IMAGE_SIZE
+        image_size = (int(image_size[0]), int(image_size[1]))
         spec = load_task(task_arg)
         if spec.fps != 30:
             raise ValueError(f"task fps is {spec.fps}; the dataset is recorded at 30 fps")
