@@ -165,6 +165,37 @@ def test_resume_continues_exactly(dataset: Path, tiny: Path, tmp_path: Path) -> 
     info = json.loads((straight.pretrained_dir / "so101_sim_train.json").read_text())
     assert info["dataset_image_size"] == list(SMALL) and info["policy_image_size"] == [24, 32]
     assert info["weights"] == "EMA" and info["step"] == 4
+    # the same command again on the finished run: nothing trained, nothing saved over (it
+    # used to save step 4 again with a NaN loss); without --steps a resume keeps the run's
+    # own total (it fell back to the preset's), and a different batch size is refused
+    last = tmp_path / "b" / "checkpoints" / "step_0000004" / "pretrained_model"
+    sidecar = (last / "so101_sim_train.json").read_bytes()
+    again = train(dataset, tmp_path / "b", preset_name=str(tiny), resume=True, **fixed)
+    assert (again.step, again.final_loss, again.samples_per_s) == (4, resumed.final_loss, 0.0)
+    assert (last / "so101_sim_train.json").read_bytes() == sidecar
+    with pytest.raises(TrainError, match=r"--steps 3: .* is already at step 4"):
+        train(dataset, tmp_path / "b", preset_name=str(tiny), steps=3, resume=True, **fixed)
+    with pytest.raises(TrainError, match=f"trained at --batch-size {info['batch_size']}, not "
+                                         f"{info['batch_size'] + 1}; resume without"):
+        train(dataset, tmp_path / "b", preset_name=str(tiny), steps=6,
+              batch_size=info["batch_size"] + 1, resume=True, **fixed)
+
+
+def test_resume_refuses_a_dataset_that_changed(dataset: Path, tiny: Path,
+                                                tmp_path: Path) -> None:
+    """Episodes recorded into the dataset after the run started: resuming would draw from
+    other frames than the run's first steps did."""
+    import shutil
+
+    grown = tmp_path / "ds"
+    shutil.copytree(dataset, grown)
+    fixed = {"progress": False, "threads": 1}
+    train(grown, tmp_path / "run", preset_name=str(tiny), steps=4, stop_at=1, **fixed)
+    record(grown, 3, resume=True, progress=False)
+    with pytest.raises(TrainError, match=r"trained on 2 episodes \(\d+ frames\) of .*, which "
+                                         r"now holds 3 .* fine-tune on it in a new run with "
+                                         "--init-from"):
+        train(grown, tmp_path / "run", preset_name=str(tiny), steps=4, resume=True, **fixed)
 
 
 def test_busy_machine_steps_in_parts(dataset: Path, tiny: Path, tmp_path: Path,

@@ -17,7 +17,7 @@ from typing import Any
 
 import torch
 
-from so101_sim.train.checkpoint import TRAIN_INFO
+from so101_sim.train.checkpoint import TRAIN_INFO, read_train_info
 from so101_sim.train.presets import Preset
 from so101_sim.utils.atomic import write_text_atomic
 
@@ -124,3 +124,43 @@ def truncate_log(path: Path, step: int) -> None:
         if isinstance(rec, dict) and rec.get("step", math.inf) <= step:
             keep.append(ln)
     write_text_atomic(path, "".join(ln + "\n" for ln in keep))
+
+
+def own_info(last: Path) -> dict[str, Any]:
+    """The sidecar of a run's last checkpoint ({} if torn by a kill or missing)."""
+    try:
+        return read_train_info(last / "pretrained_model") or {}
+    except ValueError:
+        return {}
+
+
+def check_same_dataset(last: Path, dataset: Any, dataset_dir: Path, out: Path) -> None:
+    """A resumed run draws from the frames it started on: a dataset that grew or shrank since
+    (e.g. `record --resume` into it) would make it another run, in silence."""
+    info, meta = own_info(last), dataset.meta
+    if info.get("dataset_frames") not in (None, meta.total_frames):
+        raise TrainError(f"{out} was trained on {info.get('dataset_episodes')} episodes "
+                         f"({info['dataset_frames']} frames) of {dataset_dir}, which now holds "
+                         f"{meta.total_episodes} ({meta.total_frames} frames); a resume would "
+                         "not be the same run: fine-tune on it in a new run with --init-from "
+                         f"{last / 'pretrained_model'}")
+
+
+def resumed_sizes(last: Path, steps: int | None, batch_size: int | None,
+                  out: Path) -> tuple[int | None, int | None]:
+    """A resumed run's total steps and batch size: its own where not given (a resume that
+    left out `--steps 40000` used to fall back to the preset's and end early). Another batch
+    size, or fewer total steps than are done, is refused."""
+    info = own_info(last)
+    own_batch, done = info.get("batch_size"), info.get("step")
+    if batch_size is None:
+        batch_size = own_batch
+    elif own_batch is not None and batch_size != own_batch:
+        raise TrainError(f"{out} was trained at --batch-size {own_batch}, not {batch_size}; "
+                         "resume without --batch-size (a run keeps one), or fine-tune at "
+                         f"another in a new run with --init-from {last / 'pretrained_model'}")
+    steps = info.get("total_steps") if steps is None else steps
+    if steps is not None and done is not None and steps < done:
+        raise TrainError(f"--steps {steps}: {out} is already at step {done}; give more total "
+                         "steps to continue it, or leave --steps out to finish its own")
+    return steps, batch_size

@@ -37,7 +37,7 @@ from tqdm import tqdm
 
 from so101_sim.dataset.reader import NotADatasetError, open_lerobot_dataset
 from so101_sim.train.augment import FrameAugmenter
-from so101_sim.train.checkpoint import init_weights_from
+from so101_sim.train.checkpoint import init_weights_from, read_train_info
 from so101_sim.train.demos import (
     CloseWeighting,
     gather_batch,
@@ -51,10 +51,12 @@ from so101_sim.train.state import (
     TrainError,
     architecture,
     check_same_architecture,
+    check_same_dataset,
     copy_policy,
     discard_partial_checkpoint,
     list_checkpoints,
     load_training_state,
+    resumed_sizes,
     save_ema_policy,
     truncate_log,
 )
@@ -107,8 +109,6 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
 
     preset = load_preset(preset_name)
     ts = preset.train
-    steps = int(steps if steps is not None else ts.steps)
-    batch_size = int(batch_size if batch_size is not None else ts.batch_size)
     log_every = int(log_every or ts.log_every)
     if precision not in PRECISIONS:
         raise TrainError(f"precision={precision!r} is invalid; expected one of {PRECISIONS}")
@@ -117,12 +117,9 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     except ValueError as e:
         raise TrainError(str(e)) from None
     precision = resolve_precision(precision, device)
-    if steps < 1 or batch_size < 1:
-        raise TrainError(f"--steps {steps} and --batch-size {batch_size} must both be >= 1")
-    if stop_at is not None and not 1 <= stop_at <= steps:
-        raise TrainError(f"--stop-at {stop_at} is outside 1..--steps ({steps}); give the step "
-                         "to pause at, at most the run's total steps")
-    end = steps if stop_at is None else stop_at
+    for name, value in (("--steps", steps), ("--batch-size", batch_size)):
+        if value is not None and value < 1:
+            raise TrainError(f"{name} {value} is invalid; expected an integer >= 1")
     weighting = None if oversample_closes is None else CloseWeighting(float(oversample_closes))
     out = Path(out)
     existed = out.exists()
@@ -136,6 +133,14 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
         what = "does not exist" if not existed else "holds no checkpoint with a training_state.pt"
         raise TrainError(f"--resume: {out} {what}, so there is nothing to continue; check --out, "
                          "or start a new run without --resume")
+    if resume:
+        steps, batch_size = resumed_sizes(existing[-1], steps, batch_size, out)
+    steps = int(steps if steps is not None else ts.steps)
+    batch_size = int(batch_size if batch_size is not None else ts.batch_size)
+    if stop_at is not None and not 1 <= stop_at <= steps:
+        raise TrainError(f"--stop-at {stop_at} is outside 1..--steps ({steps}); give the step "
+                         "to pause at, at most the run's total steps")
+    end = steps if stop_at is None else stop_at
     if resume and init_from is not None:
         raise TrainError(f"--init-from starts a new run from a checkpoint's weights and --resume "
                          f"continues {out} from its own: drop one of them")
@@ -182,6 +187,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             raise TrainError(f"{out} was trained with preset {state['preset']!r} on "
                              f"{state['dataset']}; resume it with the same --preset and --dataset")
         check_same_architecture(state, preset, out)
+        check_same_dataset(existing[-1], dataset, dataset_dir, out)
         if state.get("oversample_closes") != oversample_closes:
             raise TrainError(f"{out} was trained with --oversample-closes "
                              f"{state.get('oversample_closes')}, not {oversample_closes}; "
@@ -215,6 +221,10 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
         if stop_at is not None and step >= stop_at:
             raise TrainError(f"--stop-at {end}: {out} is already at step {step}; give a later "
                              "--stop-at, or leave it out to train to --steps")
+        if step >= steps:  # finished: a kill-safe loop may run the same command again
+            print(f"so101-sim train: {out} is already at step {step} of {steps}; nothing to "
+                  "train")
+            return finished_run(out, existing[-1], step, state["wall_s"], keep_frame_cache)
     start_step = step
     out.mkdir(parents=True, exist_ok=True)
     demos = load_demos(dataset, preset, out / "frame_cache")
@@ -330,13 +340,31 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                                 f"checkpoint {ck}")
     final = ck / "pretrained_model"
     if step == steps:  # the run's own policy; a pause at --stop-at leaves only its checkpoint
-        final = out / "pretrained_model"
-        copy_policy(ck / "pretrained_model", final)
-        if not keep_frame_cache:
-            drop_cache(out / "frame_cache")
+        final = finish(out, ck, keep_frame_cache)
     run_s = time.perf_counter() - t0
     return TrainResult(out=out, step=step, final_loss=loss_val, wall_s=wall,
                        samples_per_s=(step - start_step) * batch_size / max(run_s, 1e-9),
+                       pretrained_dir=final)
+
+
+def finish(out: Path, ck: Path, keep_frame_cache: bool) -> Path:
+    """The last checkpoint's policy as the run's own, and the frame cache gone."""
+    final = out / "pretrained_model"
+    copy_policy(ck / "pretrained_model", final)
+    if not keep_frame_cache:
+        drop_cache(out / "frame_cache")
+    return final
+
+
+def finished_run(out: Path, ck: Path, step: int, wall: float,
+                 keep_frame_cache: bool) -> TrainResult:
+    """A finished run resumed: nothing trained or saved again (its checkpoint keeps its last
+    loss), the final policy put in place if a kill came between the two."""
+    final = out / "pretrained_model"
+    if not (final / "model.safetensors").is_file():
+        final = finish(out, ck, keep_frame_cache)
+    loss = (read_train_info(ck / "pretrained_model") or {}).get("last_loss", math.nan)
+    return TrainResult(out=out, step=step, final_loss=loss, wall_s=wall, samples_per_s=0.0,
                        pretrained_dir=final)
 
 
