@@ -131,3 +131,10 @@ def test_refuses_bad_input(dataset: Path, tmp_path: Path) -> None:
     (bad / "policy_preprocessor.json").write_text(json.dumps(spec))
     with pytest.raises(UntrustedCheckpointError):
         explain(dataset, bad, write=False)
+    # an ACT preset crashed inside lerobot (no rgb-encoder option); --preset beside --policy
+    # was ignored
+    with pytest.raises(ExplainError, match="--preset act is an 'act' preset; explain follows "
+                                           "Diffusion Policy"):
+        explain(dataset, preset="act", write=False)
+    with pytest.raises(ExplainError, match="--preset cpu given with --policy"):
+        explain(dataset, SHIPPED, preset="cpu", write=False)

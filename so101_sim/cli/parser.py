@@ -340,8 +340,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="lerobot diffusion checkpoint folder (read as data: processor steps "
                          "must be ones lerobot registers); default: a fresh, untrained "
                          "--preset policy with this dataset's normalisation stats")
-    xp.add_argument("--preset", default="seed",
-                    help="preset of the fresh policy when no --policy (default seed)")
+    xp.add_argument("--preset", default=None,
+                    help="diffusion preset of the fresh policy traced when there is no "
+                         "--policy (default seed)")
     xp.add_argument("--episode", type=int, default=0)
     xp.add_argument("--frame", type=int, default=5,
                     help="current frame t within the episode (default 5: frames 4 and 5 are "

@@ -77,6 +77,10 @@ def _fresh_policy(dataset: Any, preset_name: str, seed: int) -> tuple[Any, Any, 
     from lerobot.policies.factory import make_pre_post_processors
 
     preset = load_preset(preset_name)
+    if preset.policy_type != "diffusion":
+        raise ExplainError(f"--preset {preset_name} is an {preset.policy_type!r} preset; "
+                           "explain follows Diffusion Policy: give a diffusion preset (e.g. "
+                           "seed, cpu) or a diffusion --policy")
     cams = tuple(k.split(".")[-1] for k in dataset.meta.video_keys)
     cfg = make_config(preset, *policy_features(preset.image_size, cams,
                                                dataset.meta.features["action"]["shape"][0]))
@@ -93,13 +97,18 @@ def _fresh_policy(dataset: Any, preset_name: str, seed: int) -> tuple[Any, Any, 
 
 @lock_scope
 def explain(dataset_dir: str | Path, policy_path: str | Path | None = None, episode: int = 0,
-            frame: int = 5, k: int = 25, out: str | Path | None = None, preset: str = "seed",
-            seed: int = 0, write: bool = True) -> Explanation:
+            frame: int = 5, k: int = 25, out: str | Path | None = None,
+            preset: str | None = None, seed: int = 0, write: bool = True) -> Explanation:
     """Trace frame `frame` of episode `episode` through the policy; write explain.html/.json.
 
     Without `policy_path` the policy is a fresh, untrained `preset` with the dataset's
-    normalisation stats. `seed` fixes the noise of the loss and of the DDIM sampling.
+    normalisation stats (default ``seed``). `seed` fixes the noise of the loss and of the
+    DDIM sampling.
     """
+    if policy_path is not None and preset is not None:
+        raise ExplainError(f"--preset {preset} given with --policy: a checkpoint brings its "
+                           "own config; drop --preset (it builds the untrained policy traced "
+                           "when there is no --policy)")
     dataset_dir = Path(dataset_dir)
     meta_ds = _open_dataset(dataset_dir)
     meta = meta_ds.meta
@@ -114,7 +123,7 @@ def explain(dataset_dir: str | Path, policy_path: str | Path | None = None, epis
     if policy_path is not None:
         policy, pre, post, info = _load_checkpoint(Path(policy_path))
     else:
-        policy, pre, post, info = _fresh_policy(meta_ds, preset, seed)
+        policy, pre, post, info = _fresh_policy(meta_ds, preset or "seed", seed)
     cfg = policy.config
     if not 0 <= k < cfg.num_train_timesteps:
         raise ExplainError(f"--k {k} is out of range; the scheduler has steps "
