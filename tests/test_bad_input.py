@@ -244,3 +244,19 @@ def test_eval_into_a_checkpoint_folder_is_refused(tmp_path: Path) -> None:
         evaluate("expert", episodes=1, n_envs=1, out_dir=folder, videos=0, progress=False)
     assert sorted(p.name for p in folder.iterdir()) == ["eval_info.json", "model.safetensors"]
     assert (folder / "eval_info.json").read_text() == '{"recorded": true}'
+
+
+def test_bf16_on_a_cpu_without_it_says_it_is_slow(monkeypatch) -> None:
+    """bf16 autocast on an AVX2 CPU is emulated: 14x slower per forward, in silence before."""
+    from so101_sim.harness.policies.lerobot import LeRobotPolicy
+    from so101_sim.utils import devices
+
+    monkeypatch.setattr(devices, "cpu_has_fast_bf16", lambda: False)
+    assert "bf16 autocast is emulated" in devices.slow_bf16_note("bf16", "cpu")
+    assert devices.slow_bf16_note("fp32", "cpu") is devices.slow_bf16_note("bf16", "cuda") is None
+    messages: list[str] = []
+    LeRobotPolicy(Path(__file__).parents[1] / "policy" / "pick_place_diffusion",
+                  precision="bf16", log=messages.append)
+    assert sum("bf16 autocast is emulated" in m for m in messages) == 1
+    monkeypatch.setattr(devices, "cpu_has_fast_bf16", lambda: True)
+    assert devices.slow_bf16_note("bf16", "cpu") is None

@@ -61,7 +61,7 @@ from so101_sim.train.state import (
     truncate_log,
 )
 from so101_sim.train.threads import AdaptiveThreads, BatchParts
-from so101_sim.utils.devices import resolve_device, resolve_precision
+from so101_sim.utils.devices import resolve_device, resolve_precision, slow_bf16_note
 from so101_sim.utils.locks import hold_folder, lock_scope
 
 #: Training precision: fp32, or bf16 autocast (AMX/AVX512-BF16 CPUs: 1.45x faster per step;
@@ -117,6 +117,8 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     except ValueError as e:
         raise TrainError(str(e)) from None
     precision = resolve_precision(precision, device)
+    if slow_bf16_note(precision, device):
+        print(f"so101-sim train: {slow_bf16_note(precision, device)}")
     for name, value in (("--steps", steps), ("--batch-size", batch_size)):
         if value is not None and value < 1:
             raise TrainError(f"{name} {value} is invalid; expected an integer >= 1")

@@ -52,6 +52,7 @@ from so101_sim.train.checkpoint import (
     load_weights,
     train_image_size,
 )
+from so101_sim.utils.devices import slow_bf16_note
 from so101_sim.utils.heap import keep_freed_memory
 from so101_sim.utils.trust import check_processor_files
 
@@ -114,6 +115,9 @@ class LeRobotPolicy:
         self.precision = precision
         self.task_text = task_description
         self.log = log
+        note = slow_bf16_note(precision, device)
+        if note:
+            log(f"so101-sim eval: {note}")
         if batch_size < 1:
             raise ValueError(f"batch_size={batch_size} is invalid; expected >= 1")
         check_files(self.path)
