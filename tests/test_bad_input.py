@@ -246,6 +246,23 @@ def test_eval_into_a_checkpoint_folder_is_refused(tmp_path: Path) -> None:
     assert (folder / "eval_info.json").read_text() == '{"recorded": true}'
 
 
+def test_eval_or_train_into_a_dataset_folder_is_refused(tmp_path: Path) -> None:
+    """`--out` a LeRobotDataset (say, --out the --dataset) put the run's videos/, report or
+    checkpoints among the dataset's files."""
+    from so101_sim.harness import evaluate
+    from so101_sim.train import TrainError, train
+
+    folder = tmp_path / "ds"
+    (folder / "meta").mkdir(parents=True)
+    (folder / "meta" / "info.json").write_text("{}")
+    with pytest.raises(ValueError, match=r"is a LeRobotDataset \(meta/info.json\); an eval"):
+        evaluate("expert", episodes=1, n_envs=1, out_dir=folder, videos=0, progress=False)
+    with pytest.raises(TrainError, match=r"is a LeRobotDataset \(meta/info.json\); a run"):
+        train(folder, folder, steps=1, progress=False)
+    assert sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")) == [
+        "meta", "meta/info.json"]
+
+
 def test_bf16_on_a_cpu_without_it_says_it_is_slow(monkeypatch) -> None:
     """bf16 autocast on an AVX2 CPU is emulated: 14x slower per forward, in silence before."""
     from so101_sim.harness.policies.lerobot import LeRobotPolicy

@@ -70,6 +70,10 @@ class RunDir:
             raise ValueError(f"{self.path} holds a policy checkpoint (model.safetensors); an "
                              f"eval writes {INFO} and report.md there, over an export's "
                              "recorded result; choose another --out")
+        if (self.path / "meta" / "info.json").is_file():
+            raise ValueError(f"{self.path} is a LeRobotDataset (meta/info.json); an eval "
+                             "writes its report and videos/ there, among the dataset's; choose "
+                             "another --out")
         if self.episodes_path.exists() and not resume:
             raise ValueError(f"{self.path} already holds an evaluation ({EPISODES}); pass "
                              "--resume to finish it, or choose another --out")

@@ -127,6 +127,10 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     existed = out.exists()
     hold_folder(out, "the training run",  # one writer: a second run is refused here
                 again=lambda: "resume" if list_checkpoints(out) else "rerun")
+    if (out / "meta" / "info.json").is_file():  # e.g. --out the --dataset folder
+        raise TrainError(f"--out {out} is a LeRobotDataset (meta/info.json); a run writes its "
+                         "checkpoints and frame cache there, among the dataset's files; choose "
+                         "another --out")
     existing = list_checkpoints(out)
     if existing and not resume:
         raise TrainError(f"{out} already holds checkpoints (last {existing[-1].name}); pass "
