@@ -277,3 +277,26 @@ def test_bf16_on_a_cpu_without_it_says_it_is_slow(monkeypatch) -> None:
     assert sum("bf16 autocast is emulated" in m for m in messages) == 1
     monkeypatch.setattr(devices, "cpu_has_fast_bf16", lambda: True)
     assert devices.slow_bf16_note("bf16", "cpu") is None
+
+
+def test_export_takes_any_checkpoint_folder_and_names_a_damaged_file(tmp_path: Path,
+                                                                     monkeypatch) -> None:
+    """A checkpoint outside a run's checkpoints/step_N/ with a short path ended in an
+    IndexError; a torn safetensors file in a SafetensorError traceback."""
+    import shutil
+
+    from so101_sim.harness.export import export_policy
+
+    monkeypatch.chdir(tmp_path)
+    shutil.copytree(Path(__file__).parents[1] / "policy" / "pick_place_diffusion", "p")
+    assert (export_policy(Path("p"), Path("out")) / "README.md").is_file()
+    data = Path("p/model.safetensors").read_bytes()
+    Path("p/model.safetensors").write_bytes(data[:100_000])
+    with pytest.raises(ValueError, match=r"p/model.safetensors cannot be read as safetensors"):
+        export_policy(Path("p"), Path("out2"))
+    Path("p/model.safetensors").write_bytes(data)
+    norm = next(Path("p").glob("policy_preprocessor_*.safetensors"))
+    norm.write_bytes(b"garbage")
+    with pytest.raises(ValueError, match=f"{norm} cannot be read as safetensors"):
+        export_policy(Path("p"), Path("out2"))
+    assert not Path("out2").exists()

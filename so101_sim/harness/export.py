@@ -237,6 +237,30 @@ def check_dest(dest: Path, digest: str, replace: bool) -> None:
                          "another --out")
 
 
+def training_run(checkpoint: Path) -> Path | None:
+    """The `so101-sim train` run folder a checkpoint belongs to (its log and curve), if any:
+    RUN/checkpoints/step_N/pretrained_model or RUN/pretrained_model."""
+    if checkpoint.parent.parent.name == "checkpoints":
+        return checkpoint.parents[2]
+    if (checkpoint.parent / "train_log.jsonl").is_file():
+        return checkpoint.parent
+    return None
+
+
+def check_readable(checkpoint: Path) -> None:
+    """Every safetensors file of `checkpoint` opens: a torn one is refused before it ships."""
+    from safetensors import safe_open
+
+    for f in sorted(checkpoint.glob("*.safetensors")):
+        try:
+            with safe_open(f, "pt"):
+                pass
+        except Exception as exc:  # safetensors' own error type
+            raise ValueError(f"{f} cannot be read as safetensors ({type(exc).__name__}: "
+                             f"{exc}); the checkpoint is damaged: save or copy it again"
+                             ) from None
+
+
 def export_lock(dest: Path) -> Path:
     """The lock file of an export to `dest`: `dest` is replaced whole, so it lives beside it."""
     return dest.parent / f".{dest.name}.export.lock"
@@ -258,6 +282,7 @@ def export_policy(checkpoint: Path, dest: Path,
                                 f"model.safetensors and {TRAIN_INFO}); pass a "
                                 "checkpoints/step_*/pretrained_model folder")
     check_processor_files(checkpoint)  # never ship a file that would run code when loaded
+    check_readable(checkpoint)
     dirs = [] if eval_dir is None else [eval_dir] if isinstance(eval_dir, (str, Path)) \
         else list(eval_dir)
     evals = _read_evals(dirs)
@@ -286,12 +311,12 @@ def _export(checkpoint: Path, dest: Path, info_path: Path, evals: list[tuple[Pat
         for path, e in evals:
             shutil.copy(path, tmp / (INFO if len(evals) == 1
                                      else f"eval_info_{e['config']['task']}.json"))
-        run = checkpoint.parents[2]
-        log = run / "train_log.jsonl"
-        curve = loss_curve(log) if log.is_file() else []
+        run = training_run(checkpoint)
+        log = run / "train_log.jsonl" if run else None
+        curve = loss_curve(log) if log and log.is_file() else []
         curve = [r for r in curve if r["step"] <= info["step"]]
         success_curve = widest_rows([r for task in tasks for r in read_curve(run, task)
-                                     if r["step"] <= info["step"]])
+                                     if r["step"] <= info["step"]]) if run else []
         if success_curve:
             plot_curve(success_curve, tmp / "curve.png")
         card = model_card(info, [e for _, e in evals], curve, hardware, also, success_curve,

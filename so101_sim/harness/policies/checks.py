@@ -81,7 +81,11 @@ def weights_digest(model_file: Path) -> str:
     from safetensors.torch import load_file
 
     h = hashlib.sha256()
-    state = load_file(model_file)
+    try:
+        state = load_file(model_file)
+    except Exception as exc:  # safetensors' own error type: a torn or foreign file
+        raise ValueError(f"{model_file} cannot be read as safetensors ({type(exc).__name__}: "
+                         f"{exc}); the checkpoint is damaged: save or copy it again") from None
     for name in sorted(k for k in state if not k.startswith(ACT_TRAINING_ONLY)):
         t = state[name].half() if state[name].is_floating_point() else state[name]
         h.update(f"{name}:{t.dtype}:{tuple(t.shape)}".encode())
