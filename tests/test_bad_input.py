@@ -300,3 +300,30 @@ def test_export_takes_any_checkpoint_folder_and_names_a_damaged_file(tmp_path: P
     with pytest.raises(ValueError, match=f"{norm} cannot be read as safetensors"):
         export_policy(Path("p"), Path("out2"))
     assert not Path("out2").exists()
+
+
+def test_a_damaged_dataset_or_init_checkpoint_is_one_line(tmp_path: Path) -> None:
+    """A torn parquet file came out of `datasets` as a DatasetGenerationError traceback, and
+    torn --init-from weights as a SafetensorError one."""
+    import shutil
+
+    from so101_sim.dataset.reader import NotADatasetError, open_lerobot_dataset
+    from so101_sim.record import record
+    from so101_sim.train import TrainError, train
+
+    ds = tmp_path / "ds"
+    record(ds, 1, image_size=(48, 64), progress=False)
+    ckpt = tmp_path / "ckpt"
+    shutil.copytree(Path(__file__).parents[1] / "policy" / "pick_place_diffusion", ckpt)
+    weights = (ckpt / "model.safetensors").read_bytes()
+    (ckpt / "model.safetensors").write_bytes(weights[: len(weights) // 2])
+    with pytest.raises(TrainError, match=r"--init-from: .*model.safetensors cannot be read as "
+                                         "safetensors"):
+        train(ds, tmp_path / "run", steps=1, progress=False, init_from=ckpt)
+    part = next((ds / "data").rglob("*.parquet"))
+    part.write_bytes(part.read_bytes()[:300])
+    with pytest.raises(NotADatasetError, match=r"cannot be read as a LeRobotDataset \(Arrow"):
+        open_lerobot_dataset(ds)
+    with pytest.raises(TrainError, match=r"a file in it is damaged \(copied in part, or "
+                                         r"edited\): copy or record the dataset again"):
+        train(ds, tmp_path / "run2", steps=1, progress=False)

@@ -54,5 +54,19 @@ def open_lerobot_dataset(path: str | Path, flag: str = "--dataset",
         raise NotADatasetError(f"{flag} {str(path)!r} is not a LeRobotDataset folder (no "
                                "meta/info.json); record one with `so101-sim record --out DIR`")
     # PyAV: the trainer's frame cache decodes with it, so every reader sees the same frames
-    return LeRobotDataset(f"local/{path.name}", root=path, delta_timestamps=delta_timestamps,
-                          video_backend="pyav")
+    try:
+        return LeRobotDataset(f"local/{path.name}", root=path,
+                              delta_timestamps=delta_timestamps, video_backend="pyav")
+    except Exception as exc:  # a torn parquet file, or torn JSON metadata: one line
+        if not (isinstance(exc, json.JSONDecodeError)
+                or type(exc).__module__.split(".")[0] in ("datasets", "pyarrow")):
+            raise
+        raise NotADatasetError(_unreadable(path, flag, exc)) from None
+
+
+def _unreadable(path: Path, flag: str, exc: BaseException) -> str:
+    cause = exc.__cause__ or exc  # datasets wraps the parquet reader's error
+    return (f"{flag} {str(path)!r} cannot be read as a LeRobotDataset ({type(cause).__name__}: "
+            f"{str(cause).splitlines()[0] if str(cause) else cause!r}); a file in it is damaged "
+            "(copied in part, or edited): copy or record the dataset again (for a so101-sim "
+            "recording, `so101-sim record --out DIR --resume` names the file that changed)")

@@ -153,7 +153,12 @@ def init_weights_from(policy: Any, path: str | Path) -> dict[str, Any]:
         raise ValueError(f"{path} holds a {then.type!r} policy; the preset builds a "
                          f"{policy.config.type!r} one: start from a checkpoint of the same type")
     raw = (path / "model.safetensors").read_bytes()  # read once: loaded and fingerprinted
-    tensors = load(raw)
+    try:
+        tensors = load(raw)
+    except Exception as exc:  # safetensors' own error type: a torn or foreign file
+        raise ValueError(f"{path / 'model.safetensors'} cannot be read as safetensors "
+                         f"({type(exc).__name__}: {exc}); the checkpoint is damaged: save or "
+                         "copy it again") from None
     regridded = keep_own_grids(policy, tensors)
     more_kp = widen_keypoints(then, policy.config, tensors, policy.state_dict())
     added = widen_conditioning(then, policy.config, tensors)
