@@ -182,18 +182,20 @@ def test_resume_without_out_is_refused(tmp_path, capsys, monkeypatch):
     ["eval", "--policy", "expert", "--threads", "0"],
     ["eval", "--policy", "expert", "--policy-batch", "0"],
     ["train", "--dataset", "d", "--out", "o", "--threads", "-2"],
+    ["demo", "--seed", "-1"],
 ])
 def test_counts_below_one_are_refused_by_the_parser(argv: list[str], capsys) -> None:
     """A count below 1 used to write an empty demo mp4 (--steps 0), fail inside numpy
     (--steps -1) or torch (train --threads -2) after minutes of frame decoding, or mean
-    'default' in silence (eval --threads 0)."""
+    'default' in silence (eval --threads 0); a negative demo seed failed in Gymnasium."""
     from so101_sim.cli import main
 
     with pytest.raises(SystemExit) as exc:
         main(argv)
     assert exc.value.code == 2
     flag, value = argv[-2:]
-    assert f"argument {flag}: {value} is invalid; expected an integer >= 1" in \
+    low = 0 if flag == "--seed" else 1
+    assert f"argument {flag}: {value} is invalid; expected an integer >= {low}" in \
         capsys.readouterr().err
 
 

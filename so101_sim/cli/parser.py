@@ -19,16 +19,25 @@ def parse_image_size(text: str) -> tuple[int, int]:
     return h, w
 
 
-def positive_int(text: str) -> int:
-    """argparse type for a count that must be >= 1 (steps, threads, rows per forward)."""
+def _int_from(low: int, text: str) -> int:
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer; expected one >= 1"
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer; expected one >= {low}"
                                          ) from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{value} is invalid; expected an integer >= 1")
+    if value < low:
+        raise argparse.ArgumentTypeError(f"{value} is invalid; expected an integer >= {low}")
     return value
+
+
+def positive_int(text: str) -> int:
+    """argparse type for a count that must be >= 1 (steps, threads, rows per forward)."""
+    return _int_from(1, text)
+
+
+def seed_int(text: str) -> int:
+    """argparse type for a reset seed (>= 0, as Gymnasium requires)."""
+    return _int_from(0, text)
 
 
 def parse_steps(text: str) -> list[int]:
@@ -96,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", default="outputs/demo", help="output folder")
     demo.add_argument("--steps", type=positive_int, default=None,
                       help="env steps of the rollout (default 240; not with --grid)")
-    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--seed", type=seed_int, default=0)
     demo.add_argument("--task", default="pick_place", help="task name in envs/ or a .toml path")
     demo.add_argument("--image-size", type=parse_image_size, default=None,
                       help="HEIGHTxWIDTH of each camera (default 480x640; 240x320 with --grid)")
