@@ -471,6 +471,8 @@ def test_export_checks_what_an_eval_measured_and_what_it_replaces(
     notes: list[str] = []
     export_policy(four, shipped, tmp_path / "ev", log=notes.append)  # same weights: no flag
     assert notes == [] and json.loads((shipped / "eval_info.json").read_text()) == info
+    assert f"| weights | `{info['config']['policy_weights']}` " in (shipped / "README.md"
+                                                                    ).read_text()
     with pytest.raises(ValueError, match=r"ev/eval_info.json measured other weights \(shipped"):
         export_policy(two, tmp_path / "other", tmp_path / "ev")
     with pytest.raises(ValueError, match="measured other weights"):

@@ -120,7 +120,7 @@ POLICY_NAMES = {"diffusion": ("Diffusion Policy", "DiffusionPolicy"), "act": ("A
 def model_card(train_info: dict, evals: dict | list[dict] | None, curve: list[dict],
                hardware: str, also: list[dict] | None = None,
                success_curve: list[dict] | None = None,
-               name: str = "pick_place_diffusion") -> str:
+               name: str = "pick_place_diffusion", weights: str = "") -> str:
     """Markdown model card from the training sidecar, the loss curve and harness results (one
     per task the checkpoint answers for)."""
     t = train_info
@@ -154,6 +154,8 @@ def model_card(train_info: dict, evals: dict | list[dict] | None, curve: list[di
         f"| trainer wall time | {t['train_wall_s'] / 3600:.2f} h (while the trainer ran, "
         "including time paused or sharing the CPU) |",
         f"| hardware | {hardware} |",
+        *([f"| weights | `{weights}` (an eval of these weights has it as "
+           "`config.policy_weights`) |"] if weights else []),
     ]
     for e in evals:
         lines += _eval_rows(e, "success" if len(evals) == 1 else
@@ -292,11 +294,12 @@ def export_policy(checkpoint: Path, dest: Path,
     with folder_lock(dest.parent, f"the export {dest.name}", again="rerun",
                      name=export_lock(dest).name):
         check_dest(dest, digest, replace)
-        return _export(checkpoint, dest, info_path, evals, hardware, [e for _, e in also])
+        return _export(checkpoint, dest, info_path, evals, hardware, [e for _, e in also],
+                       digest)
 
 
 def _export(checkpoint: Path, dest: Path, info_path: Path, evals: list[tuple[Path, dict]],
-            hardware: str, also: list[dict]) -> Path:
+            hardware: str, also: list[dict], digest: str) -> Path:
     info = json.loads(info_path.read_text())
     tasks = [e["config"]["task"] for _, e in evals] or [DEFAULT_TASK]
     tmp = dest.with_name(dest.name + ".tmp")
@@ -320,7 +323,7 @@ def _export(checkpoint: Path, dest: Path, info_path: Path, evals: list[tuple[Pat
         if success_curve:
             plot_curve(success_curve, tmp / "curve.png")
         card = model_card(info, [e for _, e in evals], curve, hardware, also, success_curve,
-                          name=dest.name)
+                          name=dest.name, weights=digest)
         (tmp / "README.md").write_text(card)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)  # a full disk: free what this run took
