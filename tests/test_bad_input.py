@@ -297,6 +297,10 @@ def test_export_takes_any_checkpoint_folder_and_names_a_damaged_file(tmp_path: P
     with pytest.raises(ValueError, match=r"p/model.safetensors cannot be read as safetensors"):
         export_policy(Path("p"), Path("out2"))
     Path("p/model.safetensors").write_bytes(data)
+    Path("out/model.safetensors").write_bytes(b"torn")  # a damaged export: --replace fixes it
+    with pytest.raises(ValueError, match=r"--out out holds a damaged export .* pass --replace"):
+        export_policy(Path("p"), Path("out"))
+    assert (export_policy(Path("p"), Path("out"), replace=True) / "README.md").is_file()
     norm = next(Path("p").glob("policy_preprocessor_*.safetensors"))
     norm.write_bytes(b"garbage")
     with pytest.raises(ValueError, match=f"{norm} cannot be read as safetensors"):

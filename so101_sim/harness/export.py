@@ -231,8 +231,14 @@ def check_dest(dest: Path, digest: str, replace: bool) -> None:
     if not dest.is_dir() or not model.is_file() or not (dest / "config.json").is_file():
         raise ValueError(f"--out {dest} holds other files, not an exported policy, and an "
                          "export replaces its folder whole; choose a new or empty folder")
-    held = weights_digest(model)
-    if held != digest and not replace:
+    if replace:  # whatever it holds, even a damaged copy
+        return
+    try:
+        held = weights_digest(model)
+    except ValueError as exc:
+        raise ValueError(f"--out {dest} holds a damaged export ({exc}); pass --replace to "
+                         "overwrite it") from None
+    if held != digest:
         raise ValueError(f"--out {dest} already holds another policy (weights {held}; this "
                          f"checkpoint's are {digest}); pass --replace to overwrite it, after "
                          "`so101-sim compare` shows the new one is better, or choose "
