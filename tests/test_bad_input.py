@@ -333,3 +333,18 @@ def test_a_damaged_dataset_or_init_checkpoint_is_one_line(tmp_path: Path) -> Non
     with pytest.raises(TrainError, match=r"a file in it is damaged \(copied in part, or "
                                          r"edited\): copy or record the dataset again"):
         train(ds, tmp_path / "run2", steps=1, progress=False)
+
+
+@pytest.mark.parametrize("argv", [["demo", "--steps", "2"], ["demo", "--grid", "2x2"],
+                                  ["export", "policy/pick_place_diffusion"]])
+def test_out_that_is_a_file_is_one_line(argv: list[str], tmp_path: Path, capsys,
+                                        monkeypatch) -> None:
+    """demo made a FileExistsError traceback; export called the file 'other files'."""
+    from so101_sim.cli import main
+
+    monkeypatch.chdir(Path(__file__).parents[1])
+    target = tmp_path / "afile"
+    target.write_text("mine")
+    assert main([*argv, "--out", str(target)]) == 2
+    assert f"--out {target} is a file; expected a folder" in capsys.readouterr().err
+    assert target.read_text() == "mine"

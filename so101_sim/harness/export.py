@@ -228,7 +228,10 @@ def check_dest(dest: Path, digest: str, replace: bool) -> None:
     if not dest.exists() or (dest.is_dir() and not any(dest.iterdir())):
         return
     model = dest / "model.safetensors"
-    if not dest.is_dir() or not model.is_file() or not (dest / "config.json").is_file():
+    if not dest.is_dir():
+        raise ValueError(f"--out {dest} is a file; expected a folder for the export: choose "
+                         "another --out")
+    if not model.is_file() or not (dest / "config.json").is_file():
         raise ValueError(f"--out {dest} holds other files, not an exported policy, and an "
                          "export replaces its folder whole; choose a new or empty folder")
     if replace:  # whatever it holds, even a damaged copy

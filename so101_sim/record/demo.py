@@ -35,10 +35,17 @@ def fixed_action_sequence(n_steps: int) -> np.ndarray:
     return seq.astype(np.float32)
 
 
+def _make_folder(out_dir: Path) -> None:
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"--out {out_dir} is a file; expected a folder for the demo's video "
+                         "and images: choose another --out")
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+
 def run_demo(out_dir: Path, steps: int = 240, image_size: tuple[int, int] = (480, 640),
              seed: int = 0, task: str = "pick_place") -> dict[str, Path]:
     """Write demo.mp4 (front|side) and one PNG per camera (the last frame) into `out_dir`."""
-    out_dir.mkdir(parents=True, exist_ok=True)
+    _make_folder(out_dir)
     env = PickPlaceEnv(task=task, image_size=image_size, render_mode="rgb_array")
     obs, _ = env.reset(seed=seed)
     video_path = out_dir / "demo.mp4"
@@ -78,7 +85,7 @@ def contact_sheet(out_dir: Path, task: str = "pick_place_dr", grid: tuple[int, i
     from PIL import Image, ImageDraw
 
     rows, cols = grid
-    out_dir.mkdir(parents=True, exist_ok=True)
+    _make_folder(out_dir)
     env = PickPlaceEnv(task=task, image_size=image_size, cameras=(camera,))
     h, w = image_size
     sheet = Image.new("RGB", (cols * w, rows * h))
