@@ -570,6 +570,15 @@ def test_act_trains_from_its_preset_and_evaluates(dataset: Path, tmp_path: Path)
                       image_size=SMALL, out_dir=tmp_path / "eval", progress=False, report=False,
                       log=lambda _: None)
     assert result["per_episode"][0]["steps"] == 8
+    # the export without the VAE encoder still has the checkpoint's weights digest, so an
+    # eval of either belongs on the card
+    from so101_sim.harness.policies.checks import weights_digest
+
+    assert weights_digest(shipped / "model.safetensors") == weights_digest(
+        r.pretrained_dir / "model.safetensors")
+    with pytest.raises(ValueError, match=r"--inference-steps \(num_inference_steps\) applies "
+                                         "to diffusion policies; .* is a 'act' policy: drop it"):
+        LeRobotPolicy(r.pretrained_dir, num_inference_steps=5, log=lambda _: None)
 
 
 def test_close_windows_mark_each_close_of_its_own_episode() -> None:

@@ -19,6 +19,20 @@ IMAGE_PREFIX = "observation.images."
 ACT_TRAINING_ONLY = "model.vae_encoder"
 
 
+#: ``load_policy``'s lerobot options (and the config fields they set) -> ``so101-sim eval``'s
+#: flags, for messages
+OPTION_FLAGS = {"n_action_steps": "--n-action-steps", "num_inference_steps": "--inference-steps",
+                "noise_scheduler": "--noise-scheduler",
+                "noise_scheduler_type": "--noise-scheduler",
+                "temporal_ensemble_coeff": "--temporal-ensemble", "batch_size": "--policy-batch",
+                "precision": "--precision", "camera_map": "--camera-map", "device": "--device"}
+
+
+def flag_names(options: Any) -> str:
+    """``--policy-batch (batch_size), --precision (precision)`` for option names."""
+    return ", ".join(f"{OPTION_FLAGS.get(k, k)} ({k})" for k in sorted(options))
+
+
 def check_features(cfg: Any, path: Path) -> tuple[tuple[str, ...], Any, bool]:
     """The camera names, image size and env-state use the checkpoint expects; errors if the
     env cannot provide them (camera names are matched to env cameras by the caller)."""

@@ -8,21 +8,16 @@ from pathlib import Path
 from typing import Any
 
 from so101_sim.expert import ScriptedExpert
+from so101_sim.harness.policies.checks import flag_names
 from so101_sim.harness.policies.protocol import EvalPolicy, PolicyInfo, StepPolicy
 from so101_sim.tasks import TaskSpec, load_task
-
-#: ``load_policy``'s lerobot options and the ``so101-sim eval`` flags that set them
-OPTION_FLAGS = {"n_action_steps": "--n-action-steps", "num_inference_steps": "--inference-steps",
-                "noise_scheduler": "--noise-scheduler",
-                "temporal_ensemble_coeff": "--temporal-ensemble", "batch_size": "--policy-batch",
-                "precision": "--precision", "camera_map": "--camera-map", "device": "--device"}
 
 
 def refuse_options(options: dict[str, Any], policy: str) -> None:
     """Options only a lerobot checkpoint reads, given to another policy: refused, not
     ignored."""
     if options:
-        named = ", ".join(f"{OPTION_FLAGS.get(k, k)} ({k})" for k in sorted(options))
+        named = flag_names(options)
         raise ValueError(f"{named} appl{'y' if len(options) > 1 else 'ies'} to lerobot "
                          f"checkpoints, not to --policy {policy}; drop "
                          f"{'them' if len(options) > 1 else 'it'}")

@@ -38,7 +38,12 @@ from so101_sim.harness.camera_map import (
     resolve_camera_map,
     shown_camera_map,
 )
-from so101_sim.harness.policies.checks import check_features, fingerprint, weights_digest
+from so101_sim.harness.policies.checks import (
+    check_features,
+    fingerprint,
+    flag_names,
+    weights_digest,
+)
 from so101_sim.harness.policies.encoder_split import use_split_encoder
 from so101_sim.harness.policies.pooling import use_channels_last_pooling
 from so101_sim.harness.policies.protocol import ChunkRequest, PolicyInfo
@@ -189,11 +194,13 @@ class LeRobotPolicy:
         else:
             other = sorted(set(asked) - {"n_action_steps", "temporal_ensemble_coeff"})
             if other:
-                raise ValueError(f"{other} apply to diffusion policies; {self.path} is a "
-                                 f"{cfg.type!r} policy")
+                raise ValueError(f"{flag_names(other)} appl{'y' if len(other) > 1 else 'ies'}"
+                                 f" to diffusion policies; {self.path} is a {cfg.type!r} "
+                                 f"policy: drop {'them' if len(other) > 1 else 'it'}")
             for key in ("n_action_steps", "temporal_ensemble_coeff"):
                 if key in asked and not hasattr(cfg, key):
-                    raise ValueError(f"{cfg.type!r} policies have no {key} to override")
+                    raise ValueError(f"{cfg.type!r} policies have no {key} to override "
+                                     f"({flag_names([key])}): drop it")
             self._ensemble_settings(asked, getattr(cfg, "temporal_ensemble_coeff", None))
         for key, value in asked.items():
             if getattr(cfg, key, None) != value:  # DiffusionConfig has no ensembling field
