@@ -348,3 +348,30 @@ def test_out_that_is_a_file_is_one_line(argv: list[str], tmp_path: Path, capsys,
     assert main([*argv, "--out", str(target)]) == 2
     assert f"--out {target} is a file; expected a folder" in capsys.readouterr().err
     assert target.read_text() == "mine"
+
+
+def test_env_workers_are_capped_by_the_available_memory(tmp_path: Path, monkeypatch) -> None:
+    """--n-envs 200 on a small machine started 200 workers of ~120 MB each: an OOM kill.
+    The run takes what fits, says so in one line, and its outcomes are the same."""
+    from so101_sim.harness import evaluate
+    from so101_sim.utils import devices
+
+    assert devices.available_mb() > 0  # read from /proc/meminfo here
+    lines: list[str] = []
+    monkeypatch.setattr(devices, "available_mb", lambda: 1024 + 2 * devices.WORKER_MB)
+    assert devices.workers_that_fit(2, lines.append) == 2 and lines == []
+    info = evaluate("expert", episodes=3, n_envs=3, out_dir=tmp_path / "capped", videos=0,
+                    progress=False, log=lines.append)
+    assert info["config"]["workers"]["workers"] == 2
+    assert [m for m in lines if "env workers would take" in m] == [
+        f"so101-sim eval: 3 env workers would take about "
+        f"{3 * devices.WORKER_MB / 1024:.1f} GB ({devices.WORKER_MB} MB each) and "
+        f"{(1024 + 2 * devices.WORKER_MB) / 1024:.1f} GB is available: running 2 (the actions "
+        "of each seed are the same for any --n-envs)"]
+    monkeypatch.undo()
+    again = evaluate("expert", episodes=3, n_envs=3, out_dir=tmp_path / "all", videos=0,
+                     progress=False, log=lambda _: None)
+    assert again["config"]["workers"]["workers"] == 3
+    assert all(e["actions_sha"] for e in info["per_episode"])
+    assert [e["actions_sha"] for e in info["per_episode"]] == [
+        e["actions_sha"] for e in again["per_episode"]]

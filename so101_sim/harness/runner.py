@@ -38,7 +38,7 @@ from so101_sim.harness.results import (
 )
 from so101_sim.harness.warmup import worker_preload
 from so101_sim.tasks import TaskSpec, load_task, task_ref
-from so101_sim.utils.devices import eval_policy_threads, torch_threads
+from so101_sim.utils.devices import eval_policy_threads, torch_threads, workers_that_fit
 from so101_sim.utils.disk import note_default_out
 from so101_sim.utils.locks import lock_scope
 from so101_sim.workers import PoolInfo, Reply, check_backend, start_pool
@@ -267,9 +267,10 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
         select_gl_backend()  # choose (and print) once here: workers inherit MUJOCO_GL
     preload = worker_preload(resize=cfg.resize_to is not None, rollouts=sink is not None,
                              videos=videos > 0)
-    pool = start_pool(cfg, min(n_envs, len(todo)), backend=backend, ray_address=ray_address,
-                      name="so101-eval-worker", preload=preload, timeout_s=worker_timeout_s,
-                      log=log)
+    n_workers = min(n_envs, len(todo))
+    pool = start_pool(cfg, workers_that_fit(n_workers, log) if backend == "local" else n_workers,
+                      backend=backend, ray_address=ray_address, name="so101-eval-worker",
+                      preload=preload, timeout_s=worker_timeout_s, log=log)
     slots = [_Slot() for _ in range(pool.size)]
     # Rows per policy forward: the policy's own batch size (LeRobotPolicy pads to it), else all.
     batch = pad_to or pool.size
