@@ -139,6 +139,33 @@ def test_a_signal_inside_import_ray_ends_without_a_traceback(cut: str, exc: str)
     assert "atexit" not in r.stderr and "has no attribute" not in r.stderr, r.stderr[-2000:]
 
 
+# A signal inside `ray._private.worker` itself, after its exit hook is registered: that
+# module then leaves sys.modules too, and the hook can only be found among live objects.
+_CUT_IN_WORKER = """
+import atexit, sys
+def shutdown(**kwargs):
+    print("ray's exit hook ran")
+shutdown.__module__ = "ray._private.worker"
+atexit.register(shutdown, _exiting_interpreter=True)
+assert "ray._private.worker" not in sys.modules
+from so101_sim.workers.ray_pool import forget_ray_shutdown
+forget_ray_shutdown()
+"""
+
+
+def test_a_signal_inside_rays_worker_module_unregisters_its_exit_hook() -> None:
+    """CI once printed ``partially initialized module 'ray' has no attribute '_private'``
+    from Ray's exit hook after a Ctrl-C inside `import ray`."""
+    r = subprocess.run([sys.executable, "-c", _CUT_IN_WORKER], env=ENV, capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "exit hook ran" not in r.stdout
+    keep = _CUT_IN_WORKER.replace("forget_ray_shutdown()\n", "")  # the control: it runs
+    r = subprocess.run([sys.executable, "-c", keep], env=ENV, capture_output=True, text=True,
+                       timeout=120)
+    assert "ray's exit hook ran" in r.stdout
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_signals_end_a_run_that_is_connecting(tmp_path: Path, silent_port: int,
                                               sig: signal.Signals) -> None:

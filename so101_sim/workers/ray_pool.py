@@ -51,14 +51,27 @@ def import_ray() -> Any:
         raise RuntimeError(f"--backend ray needs Ray, which is not installed here; install it "
                            f"with: {RAY_INSTALL_HINT}; or use --backend local") from None
     except BaseException:
-        # A signal cut the import short. Ray has started nothing, but its worker module may
-        # have registered ``ray.shutdown`` at exit already; on the half-imported package that
-        # prints a traceback (``module 'ray' has no attribute 'actor'``) as the process ends.
-        worker = sys.modules.get("ray._private.worker")
-        if worker is not None and hasattr(worker, "shutdown"):
-            atexit.unregister(worker.shutdown)
+        forget_ray_shutdown()
         raise
     return ray
+
+
+def forget_ray_shutdown() -> None:
+    """After a signal cut ``import ray`` short: Ray has started nothing, but its worker
+    module may have registered ``ray.shutdown`` at exit already, which on the half-imported
+    package prints a traceback as the process ends. Unregister it, also when the worker
+    module's own import was the one cut short (then it is no longer in sys.modules: CI once
+    printed ``partially initialized module 'ray' has no attribute '_private'``)."""
+    worker = sys.modules.get("ray._private.worker")
+    if worker is not None and hasattr(worker, "shutdown"):
+        atexit.unregister(worker.shutdown)
+        return
+    import gc
+
+    for obj in gc.get_objects():  # rare path: the function object is only reachable here
+        if (callable(obj) and getattr(obj, "__name__", None) == "shutdown"
+                and getattr(obj, "__module__", None) == "ray._private.worker"):
+            atexit.unregister(obj)
 
 
 class WorkerActor:
