@@ -17,7 +17,7 @@ from pathlib import Path
 from so101_sim.harness.curve import DEFAULT_TASK, plot_curve, read_curve, widest_rows
 from so101_sim.harness.policies.checks import ACT_TRAINING_ONLY, weights_digest
 from so101_sim.harness.results import INFO, check_eval_info
-from so101_sim.train.checkpoint import TRAIN_INFO, checkpoint_name
+from so101_sim.train.checkpoint import TRAIN_INFO, checkpoint_name, damaged
 from so101_sim.utils.locks import folder_lock
 from so101_sim.utils.trust import check_processor_files
 
@@ -267,9 +267,7 @@ def check_readable(checkpoint: Path) -> None:
             with safe_open(f, "pt"):
                 pass
         except Exception as exc:  # safetensors' own error type
-            raise ValueError(f"{f} cannot be read as safetensors ({type(exc).__name__}: "
-                             f"{exc}); the checkpoint is damaged: save or copy it again"
-                             ) from None
+            raise damaged(f, exc) from None
 
 
 def export_lock(dest: Path) -> Path:

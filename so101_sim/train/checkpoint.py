@@ -103,6 +103,12 @@ def checkpoint_name(path: Path) -> str:
     return p.name
 
 
+def damaged(path: Path, exc: BaseException) -> ValueError:
+    """The one-line error for a safetensors file that does not parse (torn or foreign)."""
+    return ValueError(f"{path} cannot be read as safetensors ({type(exc).__name__}: {exc}); "
+                      "the checkpoint is damaged: save or copy it again")
+
+
 def read_train_info(path: str | Path) -> dict[str, Any] | None:
     """The checkpoint's ``so101_sim_train.json`` as a dict (None if it has none)."""
     f = Path(path) / TRAIN_INFO
@@ -156,9 +162,7 @@ def init_weights_from(policy: Any, path: str | Path) -> dict[str, Any]:
     try:
         tensors = load(raw)
     except Exception as exc:  # safetensors' own error type: a torn or foreign file
-        raise ValueError(f"{path / 'model.safetensors'} cannot be read as safetensors "
-                         f"({type(exc).__name__}: {exc}); the checkpoint is damaged: save or "
-                         "copy it again") from None
+        raise damaged(path / "model.safetensors", exc) from None
     regridded = keep_own_grids(policy, tensors)
     more_kp = widen_keypoints(then, policy.config, tensors, policy.state_dict())
     added = widen_conditioning(then, policy.config, tensors)

@@ -37,7 +37,7 @@ from tqdm import tqdm
 
 from so101_sim.dataset.reader import NotADatasetError, open_lerobot_dataset
 from so101_sim.train.augment import FrameAugmenter
-from so101_sim.train.checkpoint import init_weights_from, read_train_info
+from so101_sim.train.checkpoint import init_weights_from
 from so101_sim.train.demos import (
     CloseWeighting,
     gather_batch,
@@ -56,6 +56,7 @@ from so101_sim.train.state import (
     discard_partial_checkpoint,
     list_checkpoints,
     load_training_state,
+    own_info,
     resumed_sizes,
     save_ema_policy,
     truncate_log,
@@ -117,8 +118,9 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     except ValueError as e:
         raise TrainError(str(e)) from None
     precision = resolve_precision(precision, device)
-    if slow_bf16_note(precision, device):
-        print(f"so101-sim train: {slow_bf16_note(precision, device)}")
+    note = slow_bf16_note(precision, device)
+    if note:
+        print(f"so101-sim train: {note}")
     for name, value in (("--steps", steps), ("--batch-size", batch_size)):
         if value is not None and value < 1:
             raise TrainError(f"{name} {value} is invalid; expected an integer >= 1")
@@ -369,7 +371,7 @@ def finished_run(out: Path, ck: Path, step: int, wall: float,
     final = out / "pretrained_model"
     if not (final / "model.safetensors").is_file():
         final = finish(out, ck, keep_frame_cache)
-    loss = (read_train_info(ck / "pretrained_model") or {}).get("last_loss", math.nan)
+    loss = own_info(ck).get("last_loss", math.nan)
     return TrainResult(out=out, step=step, final_loss=loss, wall_s=wall, samples_per_s=0.0,
                        pretrained_dir=final)
 

@@ -9,7 +9,7 @@ from typing import Any
 
 from so101_sim.sim import ENV_STATE_SIZE
 from so101_sim.tasks import ALL_CAMERAS as CAMERAS
-from so101_sim.train.checkpoint import TRAIN_INFO
+from so101_sim.train.checkpoint import TRAIN_INFO, damaged
 
 STATE_KEY = "observation.state"
 ENV_STATE_KEY = "observation.environment_state"
@@ -98,8 +98,7 @@ def weights_digest(model_file: Path) -> str:
     try:
         state = load_file(model_file)
     except Exception as exc:  # safetensors' own error type: a torn or foreign file
-        raise ValueError(f"{model_file} cannot be read as safetensors ({type(exc).__name__}: "
-                         f"{exc}); the checkpoint is damaged: save or copy it again") from None
+        raise damaged(model_file, exc) from None
     for name in sorted(k for k in state if not k.startswith(ACT_TRAINING_ONLY)):
         t = state[name].half() if state[name].is_floating_point() else state[name]
         h.update(f"{name}:{t.dtype}:{tuple(t.shape)}".encode())
