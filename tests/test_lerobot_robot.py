@@ -201,6 +201,40 @@ def test_bad_config_values_are_named(tmp_path):
         SO101Sim(SO101SimConfig(camera_names=["top"], calibration_dir=tmp_path))
 
 
+def test_the_expert_finds_its_robot_by_id(tmp_path):
+    """Two sim robots in one process: the expert needs --teleop.robot_id, an unknown id names
+    the connected ones, and a second robot with a taken id is refused without unregistering
+    the first."""
+    from lerobot.utils.errors import DeviceAlreadyConnectedError
+
+    a, b = _robot(tmp_path, id="a"), _robot(tmp_path, id="b")
+    a.connect()
+    b.connect()
+    try:
+        with pytest.raises(LookupError, match=r"2 so101_sim robots are connected \('a', 'b'\); "
+                                              "pass --teleop.robot_id"):
+            connected_robot()
+        assert connected_robot("b") is b
+        with pytest.raises(LookupError, match=r"--robot\.id='c' .*connected: 'a', 'b'"):
+            connected_robot("c")
+        twin = _robot(tmp_path, id="a")
+        with pytest.raises(DeviceAlreadyConnectedError, match=r"--robot\.id='a' is already"):
+            twin.connect()
+        assert connected_robot("a") is a and not twin.is_connected
+        expert = SO101SimExpert(SO101SimExpertConfig(calibration_dir=tmp_path / "e",
+                                                     robot_id="a"))
+        expert.connect()
+        assert set(expert.get_action()) == set(FEATURE_NAMES)
+        a.disconnect()
+        assert connected_robot() is b
+    finally:
+        for robot in (a, b):
+            if robot.is_connected:
+                robot.disconnect()
+    with pytest.raises(LookupError, match="no so101_sim robot is connected"):
+        connected_robot()
+
+
 def test_agreement_pairs_seeds_with_an_eval_folder(tmp_path, capsys):
     import importlib.util
 

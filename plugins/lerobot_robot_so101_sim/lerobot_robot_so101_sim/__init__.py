@@ -8,7 +8,8 @@ from lerobot_robot_so101_sim.config import (
     SO101SimConfig,
     SO101SimExpertConfig,
 )
-from lerobot_robot_so101_sim.robot import SO101Sim, connected_robot
+from lerobot_robot_so101_sim.registry import connected_robot
+from lerobot_robot_so101_sim.robot import SO101Sim
 from lerobot_robot_so101_sim.teleoperator import SO101SimExpert
 
 __all__ = ["ROBOT_TYPE", "TELEOP_TYPE", "SO101Sim", "SO101SimConfig", "SO101SimExpert",

@@ -27,6 +27,7 @@ import numpy as np
 from lerobot.robots.robot import Robot
 from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnectedError
 
+from lerobot_robot_so101_sim import registry
 from lerobot_robot_so101_sim.config import ROBOT_TYPE, SO101SimConfig
 from lerobot_robot_so101_sim.dataset_events import unwatch_datasets, watch_datasets
 from so101_sim.tasks import load_task
@@ -34,36 +35,6 @@ from so101_sim.tasks.spec import ALL_CAMERAS
 from so101_sim.utils.units import FEATURE_NAMES
 
 logger = logging.getLogger(__name__)
-
-#: The connected sim robots of this process, by ``--robot.id`` (None when not given): how the
-#: expert teleoperator finds the robot it drives.
-_CONNECTED: dict[str | None, SO101Sim] = {}
-_CONNECTED_LOCK = threading.Lock()
-
-
-def connected_robot(robot_id: str | None = None) -> SO101Sim:
-    """The connected sim robot with this ``--robot.id``; with None, the only one connected."""
-    with _CONNECTED_LOCK:
-        robots = dict(_CONNECTED)
-    if robot_id is not None:
-        if robot_id in robots:
-            return robots[robot_id]
-        raise LookupError(f"no so101_sim robot with --robot.id={robot_id!r} is connected in "
-                          f"this process (connected: {_ids(robots)}); pass the robot's id as "
-                          "--teleop.robot_id, or leave it out to use the one sim robot")
-    if len(robots) == 1:
-        return next(iter(robots.values()))
-    if not robots:
-        raise LookupError("no so101_sim robot is connected in this process: the "
-                          "so101_sim_expert teleoperator drives a sim robot of the same "
-                          "command; pass --robot.type=so101_sim")
-    raise LookupError(f"{len(robots)} so101_sim robots are connected ({_ids(robots)}); pass "
-                      "--teleop.robot_id=<the --robot.id to drive>")
-
-
-def _ids(robots: dict[str | None, Any]) -> str:
-    return ", ".join(repr(k) for k in robots) or "none"
-
 
 @dataclass
 class _Episode:
@@ -146,12 +117,7 @@ class SO101Sim(Robot):
         episode; a simulated arm needs no calibration, so `calibrate` changes nothing."""
         if self.is_connected:
             raise DeviceAlreadyConnectedError(f"{self} is already connected")
-        with _CONNECTED_LOCK:
-            if self.id in _CONNECTED:
-                raise DeviceAlreadyConnectedError(
-                    f"an so101_sim robot with --robot.id={self.id!r} is already connected in "
-                    "this process; give each sim robot its own --robot.id")
-            _CONNECTED[self.id] = self
+        registry.add(self)
         try:
             from so101_sim.sim import SO101Env
 
@@ -196,9 +162,7 @@ class SO101Sim(Robot):
 
     def _release(self) -> None:
         unwatch_datasets(self)
-        with _CONNECTED_LOCK:
-            if _CONNECTED.get(self.id) is self:
-                del _CONNECTED[self.id]
+        registry.remove(self)
         if self._env is not None:
             self._env.close()
             self._env = None

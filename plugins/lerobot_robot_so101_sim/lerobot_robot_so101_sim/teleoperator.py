@@ -14,7 +14,7 @@ from lerobot.teleoperators.teleoperator import Teleoperator
 from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnectedError
 
 from lerobot_robot_so101_sim.config import TELEOP_TYPE, SO101SimExpertConfig
-from lerobot_robot_so101_sim.robot import connected_robot
+from lerobot_robot_so101_sim.registry import connected_robot
 from so101_sim.utils.units import FEATURE_NAMES
 
 
