@@ -114,6 +114,33 @@ def test_resume_keeps_the_datasets_task_and_image_size(tmp_path: Path) -> None:
     assert _load(root).num_episodes == 2
 
 
+def test_training_seeds_that_run_out(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Seeds stop at 99999 (evaluation seeds start at 100000). A new dataset that cannot fit is
+    refused before anything runs, with the --seed-start that fits; one that runs out on the
+    way (failed seeds) keeps its episodes and says so. Before, the run stopped mid-way with
+    "seeds 100000..100000 reach the evaluation range"."""
+    for resume in (False, True):  # --resume with nothing there yet starts a new dataset
+        with pytest.raises(ValueError, match=r"5 episodes fit with --seed-start 99995 or lower"):
+            record(tmp_path / "late", 5, seed_start=99_998, image_size=SMALL, progress=False,
+                   resume=resume)
+        assert not (tmp_path / "late").exists()
+
+    import so101_sim.record.loop as loop
+
+    root = tmp_path / "lift"
+    monkeypatch.setattr(loop, "EVAL_SEED_START", 2)  # as if seeds 2.. were all failures
+    with pytest.raises(ValueError, match=r"training seeds ran out \(the last is 1\) with 2 of "
+                                         r"3 episodes in .*lift: .* keeps them"):
+        record(root, 3, task="lift", image_size=SMALL, progress=False)
+    monkeypatch.undo()
+    assert _load(root).num_episodes == 2 and stored_seeds(root) == [0, 1]
+    with pytest.raises(ValueError, match=r"has 2 episodes and its next seed is 2: 99999 more "
+                                         r"would reach .* at most 100000 episodes fit"):
+        record(root, 100_001, resume=True, progress=False)
+    assert _load(root).num_episodes == 2
+    assert record(root, 3, resume=True, progress=False)["new_episodes"] == 1  # still resumable
+
+
 def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "so101_sim.cli", *args]
 

@@ -55,10 +55,12 @@ def check_seed_range(seed_start: int, n_seeds: int = 1) -> None:
         raise ValueError(f"seed_start={seed_start} is negative; demo seeds are "
                          f"0..{EVAL_SEED_START - 1}")
     if seed_start + n_seeds > EVAL_SEED_START:
+        fix = (f"; {n_seeds} episodes fit with --seed-start {EVAL_SEED_START - n_seeds} or lower"
+               if n_seeds > 1 and seed_start < EVAL_SEED_START else "")
         raise ValueError(
             f"seeds {seed_start}..{seed_start + n_seeds - 1} reach the evaluation range "
             f"(>= {EVAL_SEED_START}); demonstrations must use training seeds "
-            f"0..{EVAL_SEED_START - 1}")
+            f"0..{EVAL_SEED_START - 1}{fix}")
 
 
 def rollout_features(image_size: tuple[int, int], cameras: tuple[str, ...]

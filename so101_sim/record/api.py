@@ -29,7 +29,12 @@ from typing import Any
 import numpy as np
 
 from so101_sim.dataset.reader import info_features, read_frames
-from so101_sim.dataset.schema import DEFAULT_REPO_ID, VCODECS, check_seed_range
+from so101_sim.dataset.schema import (
+    DEFAULT_REPO_ID,
+    EVAL_SEED_START,
+    VCODECS,
+    check_seed_range,
+)
 from so101_sim.dataset.store import SCRATCH, SIDECAR, read_sidecar
 from so101_sim.record.episode import check_dart_noise, expert_options
 from so101_sim.sim import SO101Env
@@ -43,7 +48,7 @@ from so101_sim.workers import check_backend
 
 
 def _check_args(n_episodes: int, workers: int, seed_start: int, vcodec: str | None,
-                checkpoint_every: int) -> None:
+                checkpoint_every: int, resuming: bool) -> None:
     if n_episodes < 1:
         raise ValueError(f"n_episodes={n_episodes}; expected >= 1")
     if not isinstance(workers, int) or workers < 1:
@@ -56,7 +61,8 @@ def _check_args(n_episodes: int, workers: int, seed_start: int, vcodec: str | No
         raise ValueError(f"checkpoint_every={checkpoint_every!r} is invalid; expected an "
                          "integer >= 1 (episodes between dataset checkpoints), e.g. "
                          "--checkpoint-every 50")
-    check_seed_range(seed_start)
+    # a new dataset needs at least one seed per episode (more if the expert fails some)
+    check_seed_range(seed_start, 1 if resuming else n_episodes)
 
 
 
@@ -112,7 +118,8 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path | None = None,
     from so101_sim.record.loop import Tally, record_episodes
     from so101_sim.record.worker import RecorderSpec
 
-    _check_args(n_episodes, workers, seed_start, vcodec, checkpoint_every)
+    _check_args(n_episodes, workers, seed_start, vcodec, checkpoint_every,
+                resume and (Path(out_dir) / SIDECAR).exists())
     check_backend(backend, ray_address)
     if backend == "ray":  # say so before a dataset folder is created
         from so101_sim.workers.ray_pool import import_ray
@@ -139,7 +146,16 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path | None = None,
                               cameras_given=cameras is not None)
         spec = dataclasses.replace(spec, cameras=tuple(opened.side["cameras"]))
         side = opened.side
-        tally = Tally(root, side, opened.ds.meta.total_episodes, n_episodes, progress)
+        have = opened.ds.meta.total_episodes
+        if resume and have < n_episodes and opened.next_seed + n_episodes - have > EVAL_SEED_START:
+            opened.checkpoint(reopen=False)  # close it as it was: nothing was recorded
+            raise ValueError(
+                f"{root} has {have} episodes and its next seed is {opened.next_seed}: "
+                f"{n_episodes - have} more would reach the evaluation seeds (>= "
+                f"{EVAL_SEED_START}); at most {have + EVAL_SEED_START - opened.next_seed} "
+                "episodes fit, so ask for fewer, or record the rest into another --out with a "
+                "lower --seed-start")
+        tally = Tally(root, side, have, n_episodes, progress)
         worker_spec = RecorderSpec(spec, image_size, side["dart_noise"], side["expert"],
                                    keep_failures, opened.encoder_kwargs, spec.max_steps + 2,
                                    str((root / SCRATCH).resolve()))

@@ -11,6 +11,7 @@ import numpy as np
 from tqdm import tqdm
 
 from so101_sim.sim.env import PickPlaceEnv
+from so101_sim.utils.paths import foreign_folder
 
 # Joint-space waypoints (LeRobot units) visited in order: reach out over the table, sweep
 # across the workspace opening and closing the gripper, and return to rest.
@@ -39,6 +40,9 @@ def _make_folder(out_dir: Path) -> None:
     if out_dir.exists() and not out_dir.is_dir():
         raise ValueError(f"--out {out_dir} is a file; expected a folder for the demo's video "
                          "and images: choose another --out")
+    if (what := foreign_folder(out_dir)) is not None:
+        raise ValueError(f"--out {out_dir} {what}; the demo's video and images would go among "
+                         "its files: choose another --out")
     out_dir.mkdir(parents=True, exist_ok=True)
 
 

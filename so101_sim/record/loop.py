@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from so101_sim.dataset.interrupts import Interrupts
-from so101_sim.dataset.schema import check_seed_range
+from so101_sim.dataset.schema import EVAL_SEED_START
 from so101_sim.dataset.store import SCRATCH, Spool, crash_point, scratch, write_sidecar
 from so101_sim.dataset.writer import Opened
 from so101_sim.record.worker import RecorderSpec
@@ -108,13 +108,17 @@ class Dispatcher:
         will_keep = kept + sum(self.keep(m) for m in self.done.values())
         pending = len(self.in_flight) - len(self.done)
         seeds = []
-        while pending < self.window and will_keep + pending < wanted:
-            check_seed_range(self.next_seed)
+        while pending < self.window and will_keep + pending < wanted and not self.exhausted:
             seeds.append(self.next_seed)
             self.in_flight.append(self.next_seed)
             self.next_seed += 1
             pending += 1
         return seeds
+
+    @property
+    def exhausted(self) -> bool:
+        """No training seed is left to send (the expert failed some on the way)."""
+        return self.next_seed >= EVAL_SEED_START
 
     def keep(self, meta: dict[str, Any]) -> bool:
         return bool(meta["success"] or self.keep_failures)
@@ -184,6 +188,13 @@ def record_episodes(opened: Opened, tally: Tally, spec: RecorderSpec, workers: i
                 if not dispatch.in_flight:
                     if tally.kept >= tally.n_episodes:
                         break
+                    if dispatch.exhausted:  # every episode run so far is written: say so
+                        raise ValueError(
+                            f"the training seeds ran out (the last is {EVAL_SEED_START - 1}) "
+                            f"with {tally.kept} of {tally.n_episodes} episodes in {root}: the "
+                            "expert failed some seeds. The dataset keeps them: train on it as "
+                            "it is, or record the rest into another --out with a lower "
+                            "--seed-start")
                     continue  # spooled episodes filled the window: send the next seeds
                 if not pool.busy:
                     raise RuntimeError(f"seeds {dispatch.in_flight} are neither running nor "
