@@ -108,8 +108,18 @@ def test_compare_refuses_other_seeds_or_task(tmp_path, capsys):
         compare_runs(a, c)
     with pytest.raises(ValueError, match=r"task file: .* edited between the runs"):
         compare_runs(a, d)
-    with pytest.raises(FileNotFoundError, match=r"no eval_info\.json"):
+    with pytest.raises(FileNotFoundError, match=r"no eval_info\.json: expected"):
         compare_runs(a, tmp_path)
+    # a missing folder, a file, an interrupted eval: each named as what it is
+    with pytest.raises(FileNotFoundError, match=r"nope does not exist: expected"):
+        compare_runs(a, tmp_path / "nope")
+    (tmp_path / "f.txt").write_text("x")
+    with pytest.raises(FileNotFoundError, match=r"f\.txt is a file, not a folder"):
+        compare_runs(a, tmp_path / "f.txt")
+    (tmp_path / "cut").mkdir()
+    (tmp_path / "cut" / "episodes.jsonl").write_text("")
+    with pytest.raises(FileNotFoundError, match=r"interrupted; .* --out \S*cut --resume"):
+        compare_runs(a, tmp_path / "cut")
     assert seed_ranges([5, 1, 2, 3, 9]) == "1..3, 5, 9"
 
 

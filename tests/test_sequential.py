@@ -196,6 +196,7 @@ def test_bad_arguments_name_the_value(kwargs, named):
         SequentialPairedTest(**kwargs)
     name = next(iter(kwargs)) if len(kwargs) == 1 else "margin + indifference"
     assert f"{name} must be" in str(err.value) and named in str(err.value), str(err.value)
+    assert " (eval --" in str(err.value)  # the flag a CLI user types, beside the keyword
     with pytest.raises(ValueError, match="success flag"):
         SequentialPairedTest().update(2, True)
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from so101_sim.harness.results import INFO, check_eval_info
+from so101_sim.harness.results import EPISODES, INFO, check_eval_info
 from so101_sim.harness.stats import mcnemar_p_value, paired_difference_interval, wilson_interval
 from so101_sim.utils.atomic import write_json_atomic, write_text_atomic
 
@@ -52,9 +52,8 @@ def load_run(path: str | Path) -> RunSide:
     path = Path(path)
     info_path = path / INFO
     if not info_path.is_file():
-        raise FileNotFoundError(
-            f"{path} has no {INFO}: expected the --out folder of a finished `so101-sim eval` "
-            f"(an interrupted one is finished by its command with --out {path} --resume)")
+        raise FileNotFoundError(f"{path} {missing_info_reason(path)}: expected the --out folder "
+                                "of a finished `so101-sim eval`")
     try:
         info = json.loads(info_path.read_text(encoding="utf-8"))
     except (ValueError, UnicodeDecodeError) as exc:
@@ -81,6 +80,18 @@ def load_run(path: str | Path) -> RunSide:
     if not success:
         raise ValueError(f"{info_path} holds no episodes; evaluate at least one")
     return side
+
+
+def missing_info_reason(path: Path) -> str:
+    """Why ``path`` holds no eval_info.json, in words that say what to do next."""
+    if not path.exists():
+        return "does not exist"
+    if not path.is_dir():
+        return "is a file, not a folder"
+    if (path / EPISODES).is_file():
+        return (f"has no {INFO} yet: its eval was interrupted; finish it by running its "
+                f"command again with --out {path} --resume")
+    return f"has no {INFO}"
 
 
 def check_comparable(a: RunSide, b: RunSide) -> None:

@@ -19,6 +19,7 @@ from typing import Any
 from so101_sim.harness.stats import wilson_interval
 from so101_sim.utils.atomic import append_line, drop_torn_tail, read_jsonl, write_json_atomic
 from so101_sim.utils.locks import hold_folder
+from so101_sim.utils.paths import foreign_folder
 
 EPISODES = "episodes.jsonl"
 CONFIG = "eval_config.json"
@@ -66,14 +67,9 @@ class RunDir:
         """Create the folder, or check it for ``--resume``; return the episodes already done.
         A count named in `may_grow` (``episodes``: the seeds run in order, so a longer run
         starts with the shorter one's seeds) may be larger than the folder's on resume."""
-        if (self.path / "model.safetensors").is_file():  # e.g. --out the --policy folder
-            raise ValueError(f"{self.path} holds a policy checkpoint (model.safetensors); an "
-                             f"eval writes {INFO} and report.md there, over an export's "
-                             "recorded result; choose another --out")
-        if (self.path / "meta" / "info.json").is_file():
-            raise ValueError(f"{self.path} is a LeRobotDataset (meta/info.json); an eval "
-                             "writes its report and videos/ there, among the dataset's; choose "
-                             "another --out")
+        if (what := foreign_folder(self.path)) is not None:  # e.g. --out the --policy folder
+            raise ValueError(f"{self.path} {what}; an eval writes {INFO}, report.md and "
+                             "videos/ there, over or among its files; choose another --out")
         if self.episodes_path.exists() and not resume:
             raise ValueError(f"{self.path} already holds an evaluation ({EPISODES}); pass "
                              "--resume to finish it, or choose another --out")

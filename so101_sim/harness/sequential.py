@@ -75,28 +75,31 @@ class _Design:
     @classmethod
     def make(cls, margin: Any, indifference: Any, alpha: Any,
              max_episodes: Any) -> _Design:
-        m = _real(margin, "margin", "a fraction in [0, 1) (5 points = 0.05)", "margin=0.05")
+        m = _real(margin, "margin", "a fraction in [0, 1) (5 points = 0.05)",
+                  "margin=0.05 (eval --margin 0.05)")
         if not 0 <= m < 1:
             raise ValueError(f"margin must be a fraction in [0, 1) (5 points = 0.05), got "
-                             f"{margin!r}; e.g. margin=0.05")
+                             f"{margin!r}; e.g. margin=0.05 (eval --margin 0.05)")
         d = _real(indifference, "indifference", "a fraction > 0 (10 points = 0.10)",
-                  "indifference=0.10")
+                  "indifference=0.10 (eval --indifference 0.10)")
         if not d > 0:
             raise ValueError(f"indifference must be a fraction > 0 (10 points = 0.10), got "
-                             f"{indifference!r}; e.g. indifference=0.10")
+                             f"{indifference!r}; e.g. indifference=0.10 (eval --indifference "
+                             "0.10)")
         if not m + d < 2:
             raise ValueError(f"margin + indifference must be < 2 (delta lies in [-1, 1]), got "
                              f"margin={margin!r} + indifference={indifference!r} = {m + d!r}; "
-                             "e.g. margin=0.05, indifference=0.10")
-        a = _real(alpha, "alpha", "an error rate in (0, 0.5)", "alpha=0.05")
+                             "e.g. margin=0.05, indifference=0.10 (eval --margin 0.05 "
+                             "--indifference 0.10)")
+        a = _real(alpha, "alpha", "an error rate in (0, 0.5)", "alpha=0.05 (eval --alpha 0.05)")
         if not 0 < a < 0.5:
             raise ValueError(f"alpha must be an error rate in (0, 0.5), got {alpha!r}; "
-                             "e.g. alpha=0.05")
+                             "e.g. alpha=0.05 (eval --alpha 0.05)")
         if max_episodes is not None and (
                 isinstance(max_episodes, bool) or not isinstance(max_episodes, numbers.Integral)
                 or max_episodes < 1):
             raise ValueError(f"max_episodes must be None or an integer >= 1, got "
-                             f"{max_episodes!r}; e.g. max_episodes=400")
+                             f"{max_episodes!r}; e.g. max_episodes=400 (eval --max-episodes 400)")
         # Payoff per unit stake for (a loss, a tie, a win). "worse" bets the pair difference
         # falls below -margin: worst case -(1 + m) on a win. "not worse" bets it rises above
         # -(margin + indifference): worst case -(1 - m - d) on a loss; none when m + d >= 1,
