@@ -183,20 +183,45 @@ def test_resume_without_out_is_refused(tmp_path, capsys, monkeypatch):
     ["eval", "--policy", "expert", "--policy-batch", "0"],
     ["train", "--dataset", "d", "--out", "o", "--threads", "-2"],
     ["demo", "--seed", "-1"],
+    ["record", "--out", "o", "--episodes", "0"],
+    ["record", "--out", "o", "--episodes", "1", "--workers", "0"],
+    ["record", "--out", "o", "--episodes", "1", "--checkpoint-every", "0"],
+    ["record", "--out", "o", "--episodes", "1", "--seed-start", "-1"],
+    ["eval", "--policy", "expert", "--episodes", "0"],
+    ["eval", "--policy", "expert", "--n-envs", "0"],
+    ["eval", "--policy", "expert", "--videos", "-1"],
+    ["eval", "--policy", "expert", "--seed-start", "-1"],
+    ["eval", "--policy", "expert", "--against", "r", "--max-episodes", "0"],
+    ["eval", "--policy", "expert", "--n-action-steps", "0"],
+    ["eval", "--policy", "expert", "--inference-steps", "0"],
+    ["curve", "run", "--episodes", "0"],
+    ["curve", "run", "--n-envs", "-1"],
 ])
 def test_counts_below_one_are_refused_by_the_parser(argv: list[str], capsys) -> None:
     """A count below 1 used to write an empty demo mp4 (--steps 0), fail inside numpy
     (--steps -1) or torch (train --threads -2) after minutes of frame decoding, or mean
-    'default' in silence (eval --threads 0); a negative demo seed failed in Gymnasium."""
+    'default' in silence (eval --threads 0); a negative demo seed failed in Gymnasium.
+    Others were caught by the library under its own names (`n_episodes=0`, `n_envs=0`)
+    rather than the flag the user typed."""
     from so101_sim.cli import main
 
     with pytest.raises(SystemExit) as exc:
         main(argv)
     assert exc.value.code == 2
     flag, value = argv[-2:]
-    low = 0 if flag == "--seed" else 1
+    low = 0 if flag in ("--seed", "--seed-start", "--videos") else 1
     assert f"argument {flag}: {value} is invalid; expected an integer >= {low}" in \
         capsys.readouterr().err
+
+
+def test_a_curve_refuses_training_seeds_by_its_flag(capsys) -> None:
+    """curve has no --allow-train-seeds: the library's hint to pass it was wrong there."""
+    from so101_sim.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["curve", "run", "--seed-start", "5"])
+    err = capsys.readouterr().err
+    assert "argument --seed-start: 5 is a training seed" in err and "allow" not in err
 
 
 def test_ray_connect_timeout_without_an_address_is_refused(capsys, tmp_path: Path) -> None:
@@ -244,14 +269,19 @@ def test_eval_into_a_checkpoint_folder_is_refused(tmp_path: Path) -> None:
     (folder / "eval_info.json").write_text('{"recorded": true}')
     with pytest.raises(ValueError, match=r"holds a policy checkpoint .* choose another --out"):
         evaluate("expert", episodes=1, n_envs=1, out_dir=folder, videos=0, progress=False)
+    from so101_sim.record.demo import run_demo
+
+    with pytest.raises(ValueError, match=r"holds a policy checkpoint .*; the demo's video"):
+        run_demo(folder, steps=1)
     assert sorted(p.name for p in folder.iterdir()) == ["eval_info.json", "model.safetensors"]
     assert (folder / "eval_info.json").read_text() == '{"recorded": true}'
 
 
 def test_eval_or_train_into_a_dataset_folder_is_refused(tmp_path: Path) -> None:
     """`--out` a LeRobotDataset (say, --out the --dataset) put the run's videos/, report or
-    checkpoints among the dataset's files."""
+    checkpoints, or the demo's video and images, among the dataset's files."""
     from so101_sim.harness import evaluate
+    from so101_sim.record.demo import run_demo
     from so101_sim.train import TrainError, train
 
     folder = tmp_path / "ds"
@@ -261,6 +291,8 @@ def test_eval_or_train_into_a_dataset_folder_is_refused(tmp_path: Path) -> None:
         evaluate("expert", episodes=1, n_envs=1, out_dir=folder, videos=0, progress=False)
     with pytest.raises(TrainError, match=r"is a LeRobotDataset \(meta/info.json\); a run"):
         train(folder, folder, steps=1, progress=False)
+    with pytest.raises(ValueError, match=r"is a LeRobotDataset \(meta/info.json\); the demo's"):
+        run_demo(folder, steps=1)
     assert sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")) == [
         "meta", "meta/info.json"]
 
@@ -375,3 +407,24 @@ def test_env_workers_are_capped_by_the_available_memory(tmp_path: Path, monkeypa
     assert all(e["actions_sha"] for e in info["per_episode"])
     assert [e["actions_sha"] for e in info["per_episode"]] == [
         e["actions_sha"] for e in again["per_episode"]]
+
+
+def test_ctrl_c_while_a_command_starts_is_one_line(monkeypatch, capsys) -> None:
+    """Ctrl-C during a command's imports or loading printed a KeyboardInterrupt traceback."""
+    import so101_sim.harness.compare as compare
+    from so101_sim.cli import main
+
+    def loading(*_: object, **__: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(compare, "compare_runs", loading)
+    assert main(["compare", "a", "b"]) == 130
+    assert capsys.readouterr().err == "so101-sim compare: interrupted\n"
+
+    import so101_sim.harness.curve as curve
+
+    monkeypatch.setattr(curve, "evaluate_curve", loading)  # mid-run: what is kept, what next
+    assert main(["curve", "somerun"]) == 130
+    assert capsys.readouterr().err == ("so101-sim curve: interrupted; every finished episode "
+                                       "is kept under somerun: run the same command again to "
+                                       "finish the curve\n")

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -140,6 +142,36 @@ def test_stop_at_is_the_prefix_of_the_long_run(dataset: Path, tiny: Path,
     resumed = train(dataset, tmp_path / "b", preset_name=str(tiny), steps=6, resume=True, **fixed)
     a, b = _weights(straight.pretrained_dir), _weights(resumed.pretrained_dir)
     assert resumed.step == 6 and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_a_signal_in_the_loop_saves_and_resumes(dataset: Path, tiny: Path, tmp_path: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C mid-run (SIGTERM takes the same handler): the step in progress finishes, a
+    checkpoint is saved, the message names both, and --resume finishes the run."""
+    from so101_sim.train.state import TrainingStopped
+
+    sig = signal.SIGINT
+
+    calls = []
+
+    def gather_then_signal(*args: object, **kwargs: object) -> object:
+        calls.append(1)
+        if len(calls) == 3:
+            os.kill(os.getpid(), sig)
+        return gather_batch(*args, **kwargs)
+
+    monkeypatch.setattr(trainer, "gather_batch", gather_then_signal)
+    before = signal.getsignal(sig)
+    with pytest.raises(TrainingStopped, match=rf"stopped by signal {int(sig)} at step 3; "
+                                              r"checkpoint .*step_0000003"):
+        train(dataset, tmp_path / "r", preset_name=str(tiny), steps=5, progress=False,
+              threads=1)
+    assert signal.getsignal(sig) is before
+    assert list_checkpoints(tmp_path / "r")[-1].name == "step_0000003"
+    monkeypatch.undo()
+    done = train(dataset, tmp_path / "r", preset_name=str(tiny), steps=5, resume=True,
+                 progress=False, threads=1)
+    assert done.step == 5 and done.pretrained_dir == tmp_path / "r" / "pretrained_model"
 
 
 def test_resume_continues_exactly(dataset: Path, tiny: Path, tmp_path: Path) -> None:
@@ -287,6 +319,41 @@ def test_lerobot_eval_runs_the_checkpoint(dataset: Path, tiny: Path, tmp_path: P
     assert proc.returncode == 0, proc.stderr[-3000:]
     info = json.loads(next(out.rglob("eval_info.json")).read_text())
     assert info["overall"]["n_episodes"] == 1
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_before_the_training_loop_is_one_line(tmp_path: Path, sig: signal.Signals,
+                                                       monkeypatch: pytest.MonkeyPatch,
+                                                       capsys: pytest.CaptureFixture) -> None:
+    """A signal while a run starts (imports, decoding frames: minutes on a big dataset) used
+    to end it with "so101-sim train: ; continue with --resume" (Ctrl-C: an empty message and
+    nothing to resume) or silently with -15 (SIGTERM). Now both say what the folder holds."""
+    from so101_sim.cli import main
+
+    run = tmp_path / "run"
+
+    def starting(dataset: Path, out: Path, **_: object) -> None:
+        (out / "frame_cache").mkdir(parents=True, exist_ok=True)
+        (out / "frame_cache" / "front.npy").write_bytes(b"")
+        os.kill(os.getpid(), sig)  # as if it came while frames were being decoded
+        time.sleep(10)
+        raise AssertionError(f"{sig.name} did not stop the start-up")
+
+    before = signal.getsignal(signal.SIGTERM)
+    monkeypatch.setattr(trainer, "train", starting)
+    assert main(["train", "--dataset", str(tmp_path / "ds"), "--out", str(run)]) == 130
+    assert capsys.readouterr().err.strip() == (
+        "so101-sim train: interrupted before the first checkpoint; nothing to resume: run the "
+        "same command again (the frames decoded so far are kept in its frame_cache)")
+    assert signal.getsignal(signal.SIGTERM) is before  # the command's handler is gone again
+
+    (run / "checkpoints" / "step_0000004").mkdir(parents=True)
+    (run / "checkpoints" / "step_0000004" / "training_state.pt").write_bytes(b"")
+    assert main(["train", "--dataset", str(tmp_path / "ds"), "--out", str(run), "--resume"]) \
+        == 130
+    assert capsys.readouterr().err.strip() == (
+        f"so101-sim train: interrupted; {run} keeps its last checkpoint, step_0000004; continue "
+        "with --resume")
 
 
 def test_bad_dataset_is_refused(tmp_path: Path) -> None:

@@ -29,6 +29,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with signal_exit_code():  # SIGTERM exits 15 wherever in Ray it lands
             return args.func(args)
+    except KeyboardInterrupt:  # Ctrl-C while a command starts (imports, loading): one line
+        print(f"so101-sim {args.command}: interrupted", file=sys.stderr)
+        return 130
     except PermissionError as exc:
         print(f"so101-sim {args.command}: error: cannot write or read {exc.filename}: "
               "permission denied; choose a folder you own (e.g. under your home) for --out",

@@ -60,9 +60,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    from so101_sim.dataset.interrupts import Interrupts
     from so101_sim.train import TrainError, train
     from so101_sim.train.presets import PresetError
+    from so101_sim.train.state import TrainingStopped
 
+    # Until the loop takes them over, SIGTERM stops start-up (decoding frames can take
+    # minutes) as Ctrl-C does, with the line below instead of a silent death.
+    interrupts = Interrupts()
+    interrupts.install()
     try:
         r = train(Path(args.dataset), Path(args.out), preset_name=args.preset, steps=args.steps,
                   batch_size=args.batch_size, resume=args.resume, precision=args.precision,
@@ -73,12 +79,30 @@ def cmd_train(args: argparse.Namespace) -> int:
     except (TrainError, PresetError) as e:
         print(f"so101-sim train: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt as e:
+    except TrainingStopped as e:
         print(f"so101-sim train: {e}; continue with --resume", file=sys.stderr)
         return 130
+    except KeyboardInterrupt:
+        print(f"so101-sim train: {interrupted_train(Path(args.out))}", file=sys.stderr)
+        return 130
+    finally:
+        interrupts.restore()
     print(f"{r.out}: step {r.step}, last loss {r.final_loss:.4f}, {r.samples_per_s:.1f} "
           f"samples/s, {r.wall_s / 60:.1f} min in all; EMA policy in {r.pretrained_dir}")
     return 0
+
+
+def interrupted_train(out: Path) -> str:
+    """What a signal outside the training loop leaves: the run's last checkpoint, or none."""
+    from so101_sim.train.state import list_checkpoints
+
+    last = list_checkpoints(out) if out.is_dir() else []
+    if last:
+        return (f"interrupted; {out} keeps its last checkpoint, {last[-1].name}; continue "
+                "with --resume")
+    kept = any((out / "frame_cache").glob("*.npy")) if out.is_dir() else False
+    return ("interrupted before the first checkpoint; nothing to resume: run the same command "
+            "again" + (" (the frames decoded so far are kept in its frame_cache)" if kept else ""))
 
 
 # eval's flags that --against decides, and those that mean something only with it
@@ -208,9 +232,14 @@ def cmd_curve(args: argparse.Namespace) -> int:
     run = Path(args.run)
     options = ({"temporal_ensemble_coeff": args.temporal_ensemble}
                if args.temporal_ensemble is not None else None)
-    rows = evaluate_curve(run, episodes=args.episodes, every=args.every, n_envs=args.n_envs,
-                          seed_start=args.seed_start, steps=args.steps, task=args.task,
-                          policy_options=options)
+    try:
+        rows = evaluate_curve(run, episodes=args.episodes, every=args.every,
+                              n_envs=args.n_envs, seed_start=args.seed_start, steps=args.steps,
+                              task=args.task, policy_options=options)
+    except KeyboardInterrupt:  # every finished episode is on disk, per checkpoint
+        print(f"so101-sim curve: interrupted; every finished episode is kept under {run}: run "
+              "the same command again to finish the curve", file=sys.stderr)
+        return 130
     for r in rows:
         print(f"step {r['step']:>7} ({r['train_hours']:.2f} h): {r['successes']}/"
               f"{r['episodes']} = {100 * r['success']:.1f}% (95% CI {100 * r['ci95'][0]:.1f}-"

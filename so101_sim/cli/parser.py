@@ -35,9 +35,21 @@ def positive_int(text: str) -> int:
     return _int_from(1, text)
 
 
-def seed_int(text: str) -> int:
-    """argparse type for a reset seed (>= 0, as Gymnasium requires)."""
+def nonnegative_int(text: str) -> int:
+    """argparse type for a reset seed (>= 0, as Gymnasium requires) or a count that may be 0."""
     return _int_from(0, text)
+
+
+def eval_seed_int(text: str) -> int:
+    """argparse type for the first seed of a curve: evaluation seeds only."""
+    from so101_sim.dataset.schema import EVAL_SEED_START
+
+    value = nonnegative_int(text)
+    if value < EVAL_SEED_START:
+        raise argparse.ArgumentTypeError(
+            f"{value} is a training seed (demos use seeds below {EVAL_SEED_START}); a curve "
+            f"measures on evaluation seeds, >= {EVAL_SEED_START}")
+    return value
 
 
 def parse_steps(text: str) -> list[int]:
@@ -105,7 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", default="outputs/demo", help="output folder")
     demo.add_argument("--steps", type=positive_int, default=None,
                       help="env steps of the rollout (default 240; not with --grid)")
-    demo.add_argument("--seed", type=seed_int, default=0)
+    demo.add_argument("--seed", type=nonnegative_int, default=0)
     demo.add_argument("--task", default="pick_place", help="task name in envs/ or a .toml path")
     demo.add_argument("--image-size", type=parse_image_size, default=None,
                       help="HEIGHTxWIDTH of each camera (default 480x640; 240x320 with --grid)")
@@ -119,9 +131,11 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--task", default=None,
                      help="task name in envs/ or a .toml path (default pick_place; a resumed "
                           "dataset keeps its own)")
-    rec.add_argument("--episodes", type=int, required=True, help="episodes wanted in the dataset")
+    rec.add_argument("--episodes", type=positive_int, required=True,
+                     help="episodes wanted in the dataset")
     rec.add_argument("--out", required=True, help="dataset folder (the LeRobotDataset root)")
-    rec.add_argument("--seed-start", type=int, default=0, help="first reset seed (0..99999)")
+    rec.add_argument("--seed-start", type=nonnegative_int, default=0,
+                     help="first reset seed (0..99999)")
     rec.add_argument("--image-size", type=parse_image_size, default=None,
                      help="HEIGHTxWIDTH of each camera (default 480x640; a resumed dataset "
                           "keeps its own)")
@@ -132,7 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="also keep episodes the expert failed")
     rec.add_argument("--resume", action="store_true",
                      help="continue an existing dataset up to --episodes without repeating a seed")
-    rec.add_argument("--workers", type=int, default=1,
+    rec.add_argument("--workers", type=positive_int, default=1,
                      help="workers that simulate, render and encode in parallel (processes, "
                           "or Ray actors with --backend ray; one per CPU core is best); "
                           "episodes are still stored in seed order")
@@ -151,7 +165,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--vcodec", choices=["h264", "libsvtav1"], default=None,
                      help="video codec of a new dataset (default h264: about half the CPU of "
                           "AV1 per frame; a resumed dataset keeps its own)")
-    rec.add_argument("--checkpoint-every", type=int, default=50, metavar="N",
+    rec.add_argument("--checkpoint-every", type=positive_int, default=50, metavar="N",
                      help="finalize the dataset every N episodes (default 50). A kill loses "
                           "no finished episode either way (--resume recovers them); this "
                           "bounds the recovery work and the spooled episodes on disk")
@@ -208,12 +222,13 @@ def build_parser() -> argparse.ArgumentParser:
     cu = sub.add_parser("curve", help="evaluate a training run's saved checkpoints on the same "
                                       "evaluation seeds: success against step and hours")
     cu.add_argument("run", help="the --out folder of `so101-sim train`")
-    cu.add_argument("--episodes", type=int, default=32, help="seeds per checkpoint")
+    cu.add_argument("--episodes", type=positive_int, default=32, help="seeds per checkpoint")
     cu.add_argument("--every", type=int, default=0,
                     help="only checkpoints whose step is a multiple of this (default: all)")
-    cu.add_argument("--n-envs", type=int, default=16,
+    cu.add_argument("--n-envs", type=positive_int, default=16,
                     help="env workers per checkpoint (default 16, as eval: two forwards of 8)")
-    cu.add_argument("--seed-start", type=int, default=100_000)
+    cu.add_argument("--seed-start", type=eval_seed_int, default=100_000,
+                    help="first evaluation seed (default 100000)")
     cu.add_argument("--steps", default=None, type=parse_steps,
                     help="only these checkpoint steps, comma-separated (e.g. 8000,12000)")
     cu.add_argument("--task", default="pick_place",
@@ -254,20 +269,21 @@ def build_parser() -> argparse.ArgumentParser:
                     help="task name in envs/ or a .toml path (default pick_place; with "
                          "--against, RUN's task); several as a,b,c or 'all' (one folder per "
                          "task under --out, one table, eval_info.json grouped per task)")
-    ev.add_argument("--episodes", type=int, default=None,
+    ev.add_argument("--episodes", type=positive_int, default=None,
                     help="seeds to run (default 50; with --against, RUN's)")
-    ev.add_argument("--n-envs", type=int, default=16,
+    ev.add_argument("--n-envs", type=positive_int, default=16,
                     help="env workers (default 16: two policy forwards of 8, so one half steps "
                          "while the policy runs the other's): processes, or Ray actors with "
                          "--backend ray; results per seed depend on neither")
-    ev.add_argument("--seed-start", type=int, default=None,
+    ev.add_argument("--seed-start", type=nonnegative_int, default=None,
                     help="first seed (default 100000; training seeds are below it; with "
                          "--against, RUN's)")
     ev.add_argument("--allow-train-seeds", action="store_true",
                     help="allow --seed-start below 100000 (measuring on training seeds)")
     ev.add_argument("--out", default=None,
                     help="output folder (default outputs/eval/<policy>-<task>-<time>)")
-    ev.add_argument("--videos", type=int, default=2, help="mp4s of the first V episodes")
+    ev.add_argument("--videos", type=nonnegative_int, default=2,
+                    help="mp4s of the first V episodes")
     ev.add_argument("--image-size", type=parse_image_size, default=None,
                     help="render size HEIGHTxWIDTH (default: the smallest size whose frames, "
                          "resized like training, match the faithful ones within a tolerance "
@@ -288,14 +304,14 @@ def build_parser() -> argparse.ArgumentParser:
                          "(default 0.10, the regression the check is sized for)")
     ev.add_argument("--alpha", type=float, default=None,
                     help="with --against: each wrong verdict's probability bound (default 0.05)")
-    ev.add_argument("--max-episodes", type=int, default=None, metavar="N",
+    ev.add_argument("--max-episodes", type=positive_int, default=None, metavar="N",
                     help="with --against: stop 'undecided' after N seeds (default: all of RUN's)")
     ev.add_argument("--resume", action="store_true",
                     help="finish an interrupted evaluation in --out, or extend it to more "
                          "--episodes (the seeds already run are kept)")
-    ev.add_argument("--n-action-steps", type=int, default=None,
+    ev.add_argument("--n-action-steps", type=positive_int, default=None,
                     help="actions executed per chunk (default: the checkpoint's)")
-    ev.add_argument("--inference-steps", type=int, default=None,
+    ev.add_argument("--inference-steps", type=positive_int, default=None,
                     help="diffusion denoising steps (default: the checkpoint's)")
     ev.add_argument("--noise-scheduler", choices=["DDIM", "DDPM"], default=None,
                     help="diffusion sampler (default: the checkpoint's)")

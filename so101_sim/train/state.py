@@ -26,6 +26,10 @@ class TrainError(RuntimeError):
     """Bad training input (dataset, preset, run folder)."""
 
 
+class TrainingStopped(KeyboardInterrupt):
+    """A signal stopped the training loop; its message names the step and the checkpoint."""
+
+
 def save_ema_policy(policy: Any, ema: Any, pre: Any, post: Any, dest: Path,
                     info: dict[str, Any]) -> None:
     """EMA weights in lerobot's pretrained format, written whole (a temporary folder renamed)."""

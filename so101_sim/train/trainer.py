@@ -49,6 +49,7 @@ from so101_sim.train.frame_cache import drop_cache
 from so101_sim.train.presets import load_preset, make_config, policy_features
 from so101_sim.train.state import (
     TrainError,
+    TrainingStopped,
     architecture,
     check_same_architecture,
     check_same_dataset,
@@ -64,6 +65,7 @@ from so101_sim.train.state import (
 from so101_sim.train.threads import AdaptiveThreads, BatchParts
 from so101_sim.utils.devices import resolve_device, resolve_precision, slow_bf16_note
 from so101_sim.utils.locks import hold_folder, lock_scope
+from so101_sim.utils.paths import foreign_folder
 
 #: Training precision: fp32, or bf16 autocast (AMX/AVX512-BF16 CPUs: 1.45x faster per step;
 #: slower on an H200); weights, optimiser and EMA stay fp32. "auto": see devices.py.
@@ -129,10 +131,9 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     existed = out.exists()
     hold_folder(out, "the training run",  # one writer: a second run is refused here
                 again=lambda: "resume" if list_checkpoints(out) else "rerun")
-    if (out / "meta" / "info.json").is_file():  # e.g. --out the --dataset folder
-        raise TrainError(f"--out {out} is a LeRobotDataset (meta/info.json); a run writes its "
-                         "checkpoints and frame cache there, among the dataset's files; choose "
-                         "another --out")
+    if (what := foreign_folder(out)) is not None:  # e.g. --out the --dataset folder
+        raise TrainError(f"--out {out} {what}; a run writes its checkpoints and frame cache "
+                         "there, among its files; choose another --out")
     existing = list_checkpoints(out)
     if existing and not resume:
         raise TrainError(f"{out} already holds checkpoints (last {existing[-1].name}); pass "
@@ -344,7 +345,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
         for s, h in old.items():
             signal.signal(s, h)
     if stop["signal"] is not None:
-        raise KeyboardInterrupt(f"stopped by signal {stop['signal']} at step {step}; "
+        raise TrainingStopped(f"stopped by signal {stop['signal']} at step {step}; "
                                 f"checkpoint {ck}")
     final = ck / "pretrained_model"
     if step == steps:  # the run's own policy; a pause at --stop-at leaves only its checkpoint

@@ -40,3 +40,13 @@ SHIPPED_POLICY = "pick_place_diffusion"
 def shipped_policy_dir() -> Path:
     """The trained checkpoint shipped in the repo (policy/pick_place_diffusion)."""
     return policy_dir() / SHIPPED_POLICY
+
+
+def foreign_folder(path: Path) -> str | None:
+    """What `path` already is if it belongs to another tool's output, which an ``--out`` must
+    not write among: a policy checkpoint or a LeRobotDataset (None: neither)."""
+    if (path / "model.safetensors").is_file():
+        return "holds a policy checkpoint (model.safetensors)"
+    if (path / "meta" / "info.json").is_file():
+        return "is a LeRobotDataset (meta/info.json)"
+    return None
