@@ -428,3 +428,68 @@ def test_ctrl_c_while_a_command_starts_is_one_line(monkeypatch, capsys) -> None:
     assert capsys.readouterr().err == ("so101-sim curve: interrupted; every finished episode "
                                        "is kept under somerun: run the same command again to "
                                        "finish the curve\n")
+
+
+def _run_with_checkpoints(run: Path, steps: list[int]) -> Path:
+    for step in steps:
+        d = run / "checkpoints" / f"step_{step:07d}" / "pretrained_model"
+        d.mkdir(parents=True)
+        (d / "model.safetensors").write_bytes(b"")
+    return run
+
+
+def test_a_ctrl_c_lost_in_a_gc_callback_still_stops_the_curve(tmp_path, monkeypatch) -> None:
+    """Python drops an exception raised in a weakref callback: a Ctrl-C landing there ran the
+    rest of the curve. Now the curve stops before the next checkpoint."""
+    import signal
+    import weakref
+
+    import so101_sim.harness.curve as curve
+
+    run = _run_with_checkpoints(tmp_path / "run", [100, 200, 300])
+    evaluated, dropped = [], []
+    monkeypatch.setattr(sys, "unraisablehook", lambda u: dropped.append(u.exc_type))
+
+    def first_one_signals(run_: Path, task: str, step: int, *_: object) -> None:
+        evaluated.append(step)
+        if step != 100:
+            return
+
+        class Thing:
+            pass
+
+        def callback(_ref: object) -> None:
+            os.kill(os.getpid(), signal.SIGINT)
+            sum(range(1000))  # the handler runs here, inside the callback
+
+        thing = Thing()
+        keep = weakref.ref(thing, callback)
+        del thing  # the callback runs now; its KeyboardInterrupt is printed and dropped
+        assert keep() is None and dropped == [KeyboardInterrupt]
+
+    monkeypatch.setattr(curve, "_evaluate_step", first_one_signals)
+    with pytest.raises(KeyboardInterrupt):
+        curve.evaluate_curve(run, episodes=2)
+    assert evaluated == [100]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+
+def test_sigterm_ends_a_curve_with_its_line(tmp_path, monkeypatch, capsys) -> None:
+    import signal
+
+    import so101_sim.harness.curve as curve
+    from so101_sim.cli import main
+
+    run = _run_with_checkpoints(tmp_path / "run", [100, 200])
+    evaluated = []
+
+    def terminated(run_: Path, task: str, step: int, *_: object) -> None:
+        evaluated.append(step)
+        os.kill(os.getpid(), signal.SIGTERM)
+        sum(range(1000))
+
+    monkeypatch.setattr(curve, "_evaluate_step", terminated)
+    assert main(["curve", str(run), "--episodes", "2"]) == 130
+    assert evaluated == [100]
+    assert "so101-sim curve: interrupted; every finished episode is kept" in capsys.readouterr().err
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL

@@ -1,7 +1,8 @@
 """Ctrl-C and SIGTERM while a dataset is being written: end with a finalized dataset.
 
 Every writer of a dataset (``record``, ``eval --save-rollouts``) installs ``Interrupts``: the
-signal becomes a KeyboardInterrupt, deferred while an episode is being saved.
+signal becomes a KeyboardInterrupt, deferred while an episode is being saved. ``train`` (during
+start-up) and ``curve`` (between checkpoints) install it too.
 """
 
 from __future__ import annotations
@@ -19,13 +20,23 @@ class Interrupts:
     def __init__(self) -> None:
         self.critical = False
         self.pending: int | None = None
+        self.seen: int | None = None  # the last signal handled, raised or deferred
         self._old: dict[int, Any] = {}
 
     def _handler(self, signum: int, frame: Any) -> None:
+        self.seen = signum
         if self.critical:
             self.pending = signum
         else:
             raise KeyboardInterrupt(f"signal {signum}")
+
+    def check(self) -> None:
+        """Raise again for a signal already handled. Python prints and drops an exception
+        raised in a weakref callback or ``__del__`` (garbage collection runs them anywhere), so
+        a Ctrl-C that lands there is lost; a loop that calls this between units of work still
+        stops at the next one."""
+        if self.seen is not None:
+            raise KeyboardInterrupt(f"signal {self.seen}")
 
     def install(self) -> None:
         for sig in (signal.SIGINT, signal.SIGTERM):

@@ -18,6 +18,7 @@ import re
 from pathlib import Path
 from typing import Any
 
+from so101_sim.dataset.interrupts import Interrupts
 from so101_sim.harness.stats import wilson_interval
 from so101_sim.train.checkpoint import read_train_info
 from so101_sim.utils.atomic import append_line
@@ -106,29 +107,43 @@ def check_choice(run: Path, saved: list[int], every: int, steps: list[int] | Non
 def _evaluate_missing(run: Path, checkpoints: list[tuple[int, Path]], episodes: int,
                       every: int, n_envs: int, seed_start: int, steps: list[int] | None,
                       task: str, progress: bool, options: dict[str, Any]) -> None:
-    from so101_sim.harness.policies.factory import load_policy
-    from so101_sim.harness.runner import evaluate
-
     variant = curve_variant(options)
     done = {r["step"] for r in read_curve(run, task, variant) if r.get("episodes") == episodes
             and r.get("seed_start") == seed_start}
     chosen = [(s, p) for s, p in checkpoints
               if (steps is None or s in steps) and (every <= 0 or s % every == 0)
               and s not in done]
-    for step, path in chosen:
-        info = read_train_info(path) or {}
-        name = Path(task).stem  # a task given as a .toml path: its file name
-        out = run / "eval_curve" / (f"{name}-{variant}" if variant else name) / f"step_{step:07d}"
-        policy = load_policy(str(path), task=task, **options) if options else str(path)
-        result = evaluate(policy, task=task, episodes=episodes, n_envs=n_envs,
-                          seed_start=seed_start, out_dir=out, videos=0, resume=out.exists(),
-                          progress=progress, report=False)
-        agg = result["aggregated"]
-        row = curve_row(task, step, round(agg["pc_success"] * episodes / 100), episodes,
-                        seed_start, agg.get("failure_modes", {}),
-                        train_hours=round(info.get("train_wall_s", 0) / 3600, 3),
-                        variant=variant)
-        append_line(run / CURVE_FILE, json.dumps(row))
+    interrupts = Interrupts()  # SIGTERM too ends with the CLI's line, not a bare kill
+    interrupts.install()
+    try:
+        for step, path in chosen:
+            interrupts.check()  # a Ctrl-C lost in a garbage-collection callback stops it here
+            _evaluate_step(run, task, step, path, episodes, n_envs, seed_start, progress,
+                           options, variant)
+    finally:
+        interrupts.restore()
+
+
+def _evaluate_step(run: Path, task: str, step: int, path: Path, episodes: int, n_envs: int,
+                   seed_start: int, progress: bool, options: dict[str, Any],
+                   variant: str) -> None:
+    """One checkpoint's evaluation and its line in the curve file."""
+    from so101_sim.harness.policies.factory import load_policy
+    from so101_sim.harness.runner import evaluate
+
+    info = read_train_info(path) or {}
+    name = Path(task).stem  # a task given as a .toml path: its file name
+    out = run / "eval_curve" / (f"{name}-{variant}" if variant else name) / f"step_{step:07d}"
+    policy = load_policy(str(path), task=task, **options) if options else str(path)
+    result = evaluate(policy, task=task, episodes=episodes, n_envs=n_envs,
+                      seed_start=seed_start, out_dir=out, videos=0, resume=out.exists(),
+                      progress=progress, report=False)
+    agg = result["aggregated"]
+    row = curve_row(task, step, round(agg["pc_success"] * episodes / 100), episodes,
+                    seed_start, agg.get("failure_modes", {}),
+                    train_hours=round(info.get("train_wall_s", 0) / 3600, 3),
+                    variant=variant)
+    append_line(run / CURVE_FILE, json.dumps(row))
 
 
 def curve_row(task: str, step: int, successes: int, episodes: int, seed_start: int,
