@@ -3,6 +3,8 @@ parallel workers and DART noise."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import os
 import signal
@@ -244,13 +246,26 @@ def test_bad_workers_value_is_refused(tmp_path: Path) -> None:
 # ----------------------------------------------------------------------------- DART noise
 @pytest.fixture(scope="module")
 def dart_datasets(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    """Seeds 2.. recorded with DART noise twice: in this process and by two workers."""
+    """Seeds 2.. recorded with DART noise twice: in this process and by two workers (six
+    asked for, with memory for two: the cap says so in one line and changes nothing)."""
+    from so101_sim.utils import devices
+
     base = tmp_path_factory.mktemp("rec_dart")
-    for name, workers in (("w1", 1), ("w2", 2)):
-        summary = record(base / name, 2, image_size=SMALL, progress=False, workers=workers,
-                         dart_noise=DART, seed_start=2)
+    for name, workers in (("w1", 1), ("w2", 6)):
+        out = io.StringIO()
+        with pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(out):
+            mp.setattr(devices, "available_mb", lambda: 1024 + 2 * devices.RECORD_WORKER_MB)
+            summary = record(base / name, 2, image_size=SMALL, progress=False,
+                             workers=workers, dart_noise=DART, seed_start=2)
         assert summary["episodes"] == 2 and summary["dart_noise"] == DART
         assert summary["tried"] == 3 and summary["failures"] == {"2": "never_grasped"}
+        assert summary["workers"] == min(workers, 2)
+        capped = [line for line in out.getvalue().splitlines() if "GB is available" in line]
+        assert capped == ([] if workers == 1 else [
+            f"so101-sim record: 6 workers would take about "
+            f"{6 * devices.RECORD_WORKER_MB / 1024:.1f} GB ({devices.RECORD_WORKER_MB} MB each) "
+            f"and {(1024 + 2 * devices.RECORD_WORKER_MB) / 1024:.1f} GB is available: running "
+            "2 (the dataset is the same for any --workers)"])
     return base / "w1", base / "w2"
 
 

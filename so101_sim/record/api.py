@@ -41,7 +41,7 @@ from so101_sim.sim import SO101Env
 from so101_sim.sim.env_args import check_cameras
 from so101_sim.sim.rendering import select_gl_backend
 from so101_sim.tasks import load_task
-from so101_sim.utils.devices import cpu_count
+from so101_sim.utils.devices import RECORD_WORKER_MB, cpu_count, workers_that_fit
 from so101_sim.utils.locks import folder_lock
 from so101_sim.utils.video_backend import quiet_libav
 from so101_sim.workers import check_backend
@@ -129,6 +129,10 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path | None = None,
     expert = expert_options(recover, grasp_clearance)
     quiet_libav()
     select_gl_backend()  # choose (and print) once here: workers inherit MUJOCO_GL
+    if backend == "local":  # an out-of-memory kill would take every worker with it
+        workers = workers_that_fit(workers, mb_each=RECORD_WORKER_MB, command="record",
+                                   unit="workers", same="the dataset is the same for any "
+                                   "--workers")
     root = Path(out_dir)
     with folder_lock(root, "the dataset"):  # one writer; taken before anything is written
         stored = read_sidecar(root) if resume and (root / SIDECAR).exists() else {}

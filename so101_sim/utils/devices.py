@@ -87,6 +87,12 @@ def cpu_count() -> int:
 WORKER_MB = 160
 
 
+#: Memory one local `record` worker takes: at most 249 MB PSS for 4 workers recording front and
+#: side at 480x640 with h264, 278 MB with the wrist camera too (AVX2 EPYC, 2026-12-03), rounded
+#: up. A larger --image-size takes more.
+RECORD_WORKER_MB = 320
+
+
 def available_mb() -> int | None:
     """MemAvailable from /proc/meminfo in MB (None where there is none)."""
     try:
@@ -98,19 +104,20 @@ def available_mb() -> int | None:
     return None
 
 
-def workers_that_fit(n: int, log: Callable[[str], None] = print) -> int:
-    """`n` local env workers, or as many as the available memory holds at ``WORKER_MB``
-    each (leaving 1 GB), with one line saying so: 200 workers on a small machine were an
-    out-of-memory kill. Actions per seed do not depend on the number of workers."""
+def workers_that_fit(n: int, log: Callable[[str], None] = print, *, mb_each: int = WORKER_MB,
+                     command: str = "eval", unit: str = "env workers",
+                     same: str = "the actions of each seed are the same for any --n-envs") -> int:
+    """`n` local workers, or as many as the available memory holds at `mb_each` MB each
+    (leaving 1 GB), with one line saying so: 200 workers on a small machine were an
+    out-of-memory kill. `same` says why fewer change no result."""
     free = available_mb()
     if free is None:
         return n
-    fit = max(1, (free - 1024) // WORKER_MB)
+    fit = max(1, (free - 1024) // mb_each)
     if fit >= n:
         return n
-    log(f"so101-sim eval: {n} env workers would take about {n * WORKER_MB / 1024:.1f} GB "
-        f"({WORKER_MB} MB each) and {free / 1024:.1f} GB is available: running {fit} (the "
-        "actions of each seed are the same for any --n-envs)")
+    log(f"so101-sim {command}: {n} {unit} would take about {n * mb_each / 1024:.1f} GB "
+        f"({mb_each} MB each) and {free / 1024:.1f} GB is available: running {fit} ({same})")
     return fit
 
 
