@@ -493,3 +493,15 @@ def test_sigterm_ends_a_curve_with_its_line(tmp_path, monkeypatch, capsys) -> No
     assert evaluated == [100]
     assert "so101-sim curve: interrupted; every finished episode is kept" in capsys.readouterr().err
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+
+
+def test_every_cli_option_says_what_it_does() -> None:
+    """`--help` of each command lists every option with its meaning (four had none)."""
+    import argparse
+
+    from so101_sim.cli.parser import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    bare = [f"{name} {a.option_strings or a.dest}" for name, p in sub.choices.items()
+            for a in p._actions if not a.help and "--help" not in a.option_strings]
+    assert bare == []

@@ -117,7 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", default="outputs/demo", help="output folder")
     demo.add_argument("--steps", type=positive_int, default=None,
                       help="env steps of the rollout (default 240; not with --grid)")
-    demo.add_argument("--seed", type=nonnegative_int, default=0)
+    demo.add_argument("--seed", type=nonnegative_int, default=0,
+                      help="reset seed of the rollout; with --grid, of the first tile (default 0)")
     demo.add_argument("--task", default="pick_place", help="task name in envs/ or a .toml path")
     demo.add_argument("--image-size", type=parse_image_size, default=None,
                       help="HEIGHTxWIDTH of each camera (default 480x640; 240x320 with --grid)")
@@ -175,7 +176,8 @@ def build_parser() -> argparse.ArgumentParser:
     rep = sub.add_parser("replay", help="re-simulate a recorded episode from its seed and "
                                         "actions; print the largest state deviation")
     rep.add_argument("dataset", help="dataset folder written by `so101-sim record`")
-    rep.add_argument("--episode", type=int, default=0)
+    rep.add_argument("--episode", type=int, default=0,
+                     help="episode index in the dataset (default 0)")
     rep.set_defaults(func=commands.cmd_replay)
 
     tr = sub.add_parser("train", help="train a Diffusion Policy (or ACT) preset on a recorded "
@@ -251,7 +253,9 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--also-eval", action="append", default=[], metavar="DIR",
                     help="more eval folders of the same checkpoint (e.g. the direct-render "
                          "path) shown in the card beside --eval; repeatable")
-    ex.add_argument("--hardware", default="2-core CPU (no GPU)")
+    ex.add_argument("--hardware", default="2-core CPU (no GPU)",
+                    help="what trained and evaluated it, for the card's table (default "
+                         "'2-core CPU (no GPU)')")
     ex.add_argument("--replace", action="store_true",
                     help="overwrite an --out that holds another policy (refused otherwise; "
                          "exporting the same checkpoint again, e.g. with its eval, needs no "
@@ -368,7 +372,8 @@ def build_parser() -> argparse.ArgumentParser:
     xp.add_argument("--preset", default=None,
                     help="diffusion preset of the fresh policy traced when there is no "
                          "--policy (default seed)")
-    xp.add_argument("--episode", type=int, default=0)
+    xp.add_argument("--episode", type=int, default=0,
+                    help="episode index in the dataset (default 0)")
     xp.add_argument("--frame", type=int, default=5,
                     help="current frame t within the episode (default 5: frames 4 and 5 are "
                          "observed, as in the walkthrough)")
