@@ -69,6 +69,25 @@ def test_gym_make_and_observation_layout():
     env.close()
 
 
+def test_each_task_has_its_own_gym_id():
+    """`so101_sim/Stack-v0` is `task="stack"`: same spec, same reset for a seed."""
+    from so101_sim.tasks import available_tasks
+
+    assert sorted(so101_sim.TASK_ENV_IDS) == available_tasks()
+    assert so101_sim.TASK_ENV_IDS["pick_place"] == so101_sim.ENV_ID
+    assert so101_sim.TASK_ENV_IDS["pick_place_dr"] == "so101_sim/PickPlaceDr-v0"
+    for task, env_id in so101_sim.TASK_ENV_IDS.items():
+        own = gym.make(env_id, obs_type="state")
+        generic = gym.make(so101_sim.ENV_ID, task=task, obs_type="state")
+        assert own.unwrapped.task == generic.unwrapped.task and own.unwrapped.task.name == task
+        a, _ = own.reset(seed=7)
+        b, _ = generic.reset(seed=7)
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key])
+        own.close()
+        generic.close()
+
+
 def test_env_state_observation(pixel_env):
     obs, info = pixel_env.reset(seed=3)
     es = obs["environment_state"]
