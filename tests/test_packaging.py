@@ -9,6 +9,7 @@ import zipfile
 from pathlib import Path
 
 import imageio.v3 as iio
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -84,3 +85,21 @@ def test_import_does_not_load_torch():
     code = "import sys, so101_sim, so101_sim.sim.env; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_version_names_the_package_and_what_results_depend_on(capsys):
+    """`so101-sim --version`: the installed distribution's version (one source with
+    `so101_sim.__version__`) and MuJoCo's, lerobot's, torch's, Gymnasium's, for a bug report."""
+    from importlib import metadata
+
+    import so101_sim
+    from so101_sim.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0
+    line = capsys.readouterr().out.strip()
+    assert so101_sim.__version__ == metadata.version("so101-sim")
+    assert line.startswith(f"so101-sim {so101_sim.__version__} (")
+    for dist in ("mujoco", "lerobot", "torch", "gymnasium"):
+        assert f"{dist} {metadata.version(dist)}" in line

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from so101_sim.cli import commands
+from so101_sim.cli.version import ShowVersion
 
 
 def parse_image_size(text: str) -> tuple[int, int]:
@@ -110,6 +111,9 @@ def add_backend_args(p: argparse.ArgumentParser, count_flag: str) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="so101-sim", description="`so101-sim` command line.")
+    parser.add_argument("--version", action=ShowVersion,
+                        help="print the versions of so101-sim, MuJoCo, lerobot, torch and "
+                             "Gymnasium, and exit")
     sub = parser.add_subparsers(dest="command", required=True)
 
     demo = sub.add_parser("demo", help="roll the env with a fixed action sequence; write an mp4 "
