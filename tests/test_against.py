@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import shutil
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -87,7 +88,8 @@ def test_the_expert_against_itself_is_not_worse(expert_run, tmp_path, capsys):
                  "--videos", "0", "--out", str(out), "--task", str(PICK_PLACE_TOML)]) == 0
     verdict = json.loads((out / "eval_info.json").read_text())["sequential_verdict"]
     assert verdict["verdict"] == "not worse" and verdict["episodes"] <= 60
-    assert "sequential verdict: not worse" in capsys.readouterr().out
+    out_text = capsys.readouterr().out
+    assert "sequential verdict: not worse" in out_text and "note:" not in out_text
 
 
 def test_another_task_is_refused_before_anything_runs(expert_run, tmp_path):
@@ -97,11 +99,21 @@ def test_another_task_is_refused_before_anything_runs(expert_run, tmp_path):
 
 
 def test_max_episodes_gives_undecided(expert_run, tmp_path):
-    result = evaluate_against("expert", expert_run, max_episodes=5, n_envs=2,
+    """... and a reference measured on another CPU is paired with a note saying so."""
+    other = tmp_path / "other_cpu"
+    shutil.copytree(expert_run, other)
+    info = json.loads((other / "eval_info.json").read_text())
+    info["config"]["cpu"] = "Some Other CPU"
+    (other / "eval_info.json").write_text(json.dumps(info))
+    lines: list[str] = []
+    result = evaluate_against("expert", other, max_episodes=5, n_envs=2,
                               out_dir=tmp_path / "short", videos=0, progress=False,
-                              report=False, log=lambda _: None)
+                              report=False, log=lines.append)
     assert result["sequential_verdict"]["verdict"] == "undecided"
     assert result["sequential_verdict"]["episodes"] == 5
+    assert lines[-1] == (f"so101-sim eval: note: the runs differ in CPU Some Other CPU vs "
+                         f"{result['config']['cpu']}: actions then differ bitwise and some "
+                         "seeds' outcomes may differ for that reason alone, not the policy's")
 
 
 @pytest.mark.parametrize(("flags", "message"), [

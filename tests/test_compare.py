@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +23,7 @@ from so101_sim.harness.stats import (
 )
 from so101_sim.tasks import load_task
 from so101_sim.testing import assert_not_worse
+from so101_sim.utils.versions import cpu_description, setup_differences, software_versions
 
 
 def test_mcnemar_matches_brute_force():
@@ -140,9 +142,13 @@ def test_assert_not_worse_on_the_baseline_seeds(tmp_path, capsys):
     base = tmp_path / "expert"
     evaluate("expert", episodes=8, n_envs=1, out_dir=base, videos=0, progress=False,
              report=False, log=lambda _: None)
+    cfg = json.loads((base / "eval_info.json").read_text())["config"]
+    assert cfg["software"] == software_versions() and cfg["cpu"] == cpu_description()
+    assert cfg["software"]["mujoco"] == metadata.version("mujoco")
     check = assert_not_worse("expert", base, n_envs=1)  # the same policy: identical rollouts
     assert check.passed and check.p_value == 1.0
     assert check.comparison["identical_rollouts"] == 8
+    assert check.comparison["setup_differences"] == []  # same machine, same software
     assert "one-sided exact McNemar p = 1" in capsys.readouterr().out
 
     rest = StepPolicy(_Rest, PolicyInfo(name="rest", fingerprint="rest"))
@@ -171,3 +177,28 @@ def test_comparing_a_folder_with_itself_warns(tmp_path, capsys):
                         "two eval folders"]
     b = _fake_run(tmp_path, "b", dict.fromkeys(range(100_000, 100_004), True))
     compare_runs(a, b, log=lambda line: pytest.fail(f"warned about two folders: {line}"))
+
+
+def test_runs_on_other_software_or_cpu_are_compared_with_a_note(tmp_path, capsys):
+    """Actions differ bitwise across torch releases and CPU instruction sets, so a paired
+    comparison across them says so (files from before this was recorded: no note)."""
+    seeds = range(100_000, 100_006)
+    a = _fake_run(tmp_path, "a", dict.fromkeys(seeds, True))
+    b = _fake_run(tmp_path, "b", dict.fromkeys(seeds, True))
+    old = _fake_run(tmp_path, "old", dict.fromkeys(seeds, True))
+    setup = {"software": software_versions(), "cpu": "Intel Xeon", "cpu_isa": "AVX512"}
+    for run, torch_version, cpu, isa in ((a, "2.11.0", "Intel Xeon", "AVX512"),
+                                         (b, "2.10.0", "AMD EPYC", "AVX2")):
+        info = json.loads((run / "eval_info.json").read_text())
+        info["config"].update(software={**setup["software"], "torch": torch_version}, cpu=cpu,
+                              cpu_isa=isa)
+        (run / "eval_info.json").write_text(json.dumps(info))
+    assert setup_differences({}, setup) == []
+    assert main(["compare", str(a), str(b), "--out", str(tmp_path / "cmp")]) == 0
+    notes = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("note:")]
+    assert notes == ["note: the runs differ in torch 2.11.0 vs 2.10.0; CPU Intel Xeon vs AMD "
+                     "EPYC; torch's CPU kernels AVX512 vs AVX2: actions then differ bitwise and "
+                     "some seeds' outcomes may differ for that reason alone, not the policy's"]
+    assert "torch 2.11.0 vs 2.10.0" in (tmp_path / "cmp" / "compare.md").read_text()
+    assert compare_runs(a, old, log=print)["setup_differences"] == []
+    assert not [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("note:")]

@@ -107,6 +107,9 @@ def test_pipelined_forwards_keep_results_per_seed(tiny_ckpt, short, tmp_path):
                    out_dir=tmp_path / "one", **_quiet())
     assert one["config"]["forwards_in_flight"] == 1
     assert _outcomes(one) == _outcomes(runs[5])
+    import torch  # a torch policy's run records which kernels computed its actions
+
+    assert one["config"]["cpu_isa"] == torch.backends.cpu.get_cpu_capability()
 
 
 def test_padded_rows_do_not_depend_on_batch_mates(tiny_ckpt):

@@ -3,26 +3,19 @@
 from __future__ import annotations
 
 import argparse
-import platform
-from importlib import metadata
 from typing import Any
 
-#: Distributions whose versions change what the suite computes (physics, policy, env API).
-DEPENDENCIES = ("mujoco", "lerobot", "torch", "gymnasium")
-
-
-def _installed(dist: str) -> str:
-    try:
-        return f"{dist} {metadata.version(dist)}"
-    except metadata.PackageNotFoundError:
-        return f"{dist} not installed"
+from so101_sim.utils.versions import software_versions
 
 
 def version_line() -> str:
     """so101-sim's version and its dependencies', read from the installed distributions
     (nothing heavy is imported)."""
-    found = ", ".join(_installed(d) for d in DEPENDENCIES)
-    return f"{_installed('so101-sim')} ({found}; Python {platform.python_version()})"
+    found = software_versions()
+    own = found.pop("so101-sim") or "(not installed)"
+    python = found.pop("python")
+    deps = ", ".join(f"{d} {v or 'not installed'}" for d, v in found.items())
+    return f"so101-sim {own} ({deps}; Python {python})"
 
 
 class ShowVersion(argparse.Action):

@@ -16,9 +16,10 @@ from pathlib import Path
 from typing import Any
 
 from so101_sim.dataset import EVAL_SEED_START
-from so101_sim.harness.compare import RunSide, load_run, seed_ranges
+from so101_sim.harness.compare import RunSide, load_run, seed_ranges, setup_note
 from so101_sim.harness.results import INFO
 from so101_sim.harness.sequential import SequentialPairedTest, Verdict
+from so101_sim.utils.versions import setup_differences
 
 
 class AgainstRun:
@@ -95,6 +96,8 @@ def evaluate_against(policy: Any, run: str | Path, *, margin: float = 0.0,
     result = evaluate(policy, task=task, episodes=len(stop.seeds),
                       seed_start=stop.seeds[0], stop=stop, log=log, **evaluate_kwargs)
     log(f"so101-sim eval: {stop.verdict().line()} against {run}")
+    if differences := setup_differences(reference.setup, result["config"]):
+        log(f"so101-sim eval: {setup_note(differences)}")
     return result
 
 

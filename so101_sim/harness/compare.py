@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from so101_sim.harness.results import EPISODES, INFO, check_eval_info
 from so101_sim.harness.stats import mcnemar_p_value, paired_difference_interval, wilson_interval
 from so101_sim.utils.atomic import write_json_atomic, write_text_atomic
+from so101_sim.utils.versions import SETUP_KEYS, setup_differences
 
 JSON_NAME = "compare.json"
 MARKDOWN_NAME = "compare.md"
@@ -34,6 +35,7 @@ class RunSide:
     images: str
     success: dict[int, bool]  # seed -> success
     actions_sha: dict[int, str | None]
+    setup: dict[str, Any] = field(default_factory=dict)  # software versions, CPU (if recorded)
 
     @property
     def n_success(self) -> int:
@@ -73,7 +75,7 @@ def load_run(path: str | Path) -> RunSide:
         shas = {int(e["seed"]): e.get("actions_sha") for e in episodes}
         side = RunSide(path, str(cfg["policy"]), str(cfg.get("policy_fingerprint", "")),
                        str(cfg["task"]), cfg.get("task_sha256"), str(cfg.get("images", "?")),
-                       success, shas)
+                       success, shas, {k: cfg[k] for k in SETUP_KEYS if k in cfg})
     except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"{info_path} is not an so101-sim eval result ({exc!r}); expected "
                          "the eval_info.json that `so101-sim eval` writes") from None
@@ -150,6 +152,7 @@ def paired_result(a: RunSide, b: RunSide) -> dict[str, Any]:
         "test": "exact McNemar (binomial on the discordant seeds), two-sided",
         "identical_rollouts": same,
         "seeds_only_a": only_a, "seeds_only_b": only_b,
+        "setup_differences": setup_differences(a.setup, b.setup),
     }
 
 
@@ -183,7 +186,15 @@ def summary_lines(r: dict[str, Any]) -> list[str]:
     lines.append(f"A - B = {r['difference_pp']:+.1f} points (95% CI {lo:+.1f} to {hi:+.1f}, "
                  f"Newcombe paired score); exact McNemar p = {r['mcnemar_p_two_sided']:.4g} "
                  f"(two-sided): {verdict(r)}")
+    if r.get("setup_differences"):
+        lines.append(setup_note(r["setup_differences"]))
     return lines
+
+
+def setup_note(differences: list[str]) -> str:
+    """One line: the runs did not share software or CPU, so some pairs may part for that."""
+    return (f"note: the runs differ in {'; '.join(differences)}: actions then differ bitwise "
+            "and some seeds' outcomes may differ for that reason alone, not the policy's")
 
 
 def verdict(r: dict[str, Any], alpha: float = 0.05) -> str:
@@ -216,6 +227,7 @@ def markdown(r: dict[str, Any]) -> str:
         f"- identical rollouts (same executed actions): {r['identical_rollouts']} seeds",
         f"- seeds only A solved: {_seed_list(r['seeds_only_a'])}",
         f"- seeds only B solved: {_seed_list(r['seeds_only_b'])}",
+        *([f"- {setup_note(r['setup_differences'])}"] if r.get("setup_differences") else []),
     ]
     return "\n".join(lines) + "\n"
 

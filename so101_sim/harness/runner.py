@@ -41,6 +41,7 @@ from so101_sim.tasks import TaskSpec, load_task, task_ref
 from so101_sim.utils.devices import eval_policy_threads, torch_threads, workers_that_fit
 from so101_sim.utils.disk import note_default_out
 from so101_sim.utils.locks import lock_scope
+from so101_sim.utils.versions import run_setup
 from so101_sim.workers import PoolInfo, Reply, check_backend, start_pool
 
 
@@ -173,7 +174,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
         "config": {**identity, "n_envs": n_envs, "images": rendering.label,
                    "policy_details": info.details, "workers": workers.to_dict(),
                    **({"policy_weights": info.weights} if info.weights else {}),
-                   **forwards_seen,
+                   **forwards_seen, **run_setup(),
                    "reruns": reruns, "video_paths": [r.video for r in records if r.video],
                    **({"image_check": rendering.check} if rendering.check else {})},
     }
