@@ -97,15 +97,27 @@ def test_existing_dataset_needs_resume(dataset: Path) -> None:
         record(dataset, 3, image_size=SMALL, progress=False)
 
 
-def test_resume_keeps_the_datasets_task_and_image_size(tmp_path: Path) -> None:
+def test_resume_keeps_the_datasets_task_and_image_size(tmp_path: Path, capsys) -> None:
     """`record --resume` without --task/--image-size continues the dataset as it is; before,
     it recorded 480x640 or refused, and another --task was dropped in silence (the stored
-    task recorded instead)."""
+    task recorded instead). The MuJoCo that started it is kept, and another one said."""
+    from importlib import metadata
+
+    from so101_sim.record import replay_versions
+
     root = tmp_path / "lift"
     record(root, 1, task="lift", image_size=SMALL, progress=False)
-    assert record(root, 2, resume=True, progress=False)["new_episodes"] == 1
     side = read_sidecar(root)
-    assert (side["task"], side["image_size"]) == ("lift", list(SMALL))
+    assert side["mujoco"] == metadata.version("mujoco") and replay_versions(root) == ""
+    (root / SIDECAR).write_text(json.dumps({**side, "mujoco": "0.0.1"}))  # an older MuJoCo's
+    capsys.readouterr()
+    assert record(root, 2, resume=True, progress=False)["new_episodes"] == 1
+    now = metadata.version("mujoco")
+    assert (f"so101-sim record: {root} was started with MuJoCo 0.0.1 and goes on with {now}: "
+            "`replay` may not reproduce every episode bit for bit") in capsys.readouterr().out
+    assert replay_versions(root) == f" (recorded with MuJoCo 0.0.1, re-simulated with {now})"
+    side = read_sidecar(root)
+    assert (side["task"], side["image_size"], side["mujoco"]) == ("lift", list(SMALL), "0.0.1")
     assert _load(root)[0]["observation.images.front"].shape == (3, *SMALL)
     with pytest.raises(ValueError, match=f"{root} holds lift demos, not pick_place; resume "
                                          "without --task"):

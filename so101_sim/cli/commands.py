@@ -52,10 +52,11 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from so101_sim.record import replay
+    from so101_sim.record import replay, replay_versions
 
     dev = replay(Path(args.dataset), args.episode)
-    print(f"episode {args.episode}: max |observation.state - re-simulated agent_pos| = {dev:.3g}")
+    print(f"episode {args.episode}: max |observation.state - re-simulated agent_pos| = {dev:.3g}"
+          + replay_versions(Path(args.dataset)))
     return 0
 
 

@@ -41,6 +41,7 @@ from so101_sim.dataset.store import (
     write_sidecar,
 )
 from so101_sim.utils.locks import LOCK_FILE, clear_folder, has_content
+from so101_sim.utils.versions import installed
 
 
 class WorkerVideos:
@@ -286,6 +287,10 @@ def open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
         failures = dict(side.get("failures", {}))
         next_seed = max([seed_start - 1, *tried]) + 1
         fresh = False
+        mujoco = side.get("mujoco")  # what its episodes so far were simulated with
+        if mujoco and mujoco != installed("mujoco"):
+            print(f"so101-sim record: {root} was started with MuJoCo {mujoco} and goes on with "
+                  f"{installed('mujoco')}: `replay` may not reproduce every episode bit for bit")
     else:
         codec = vcodec or DEFAULT_VCODEC
         encoder = encoder_config(codec)
@@ -294,9 +299,11 @@ def open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
                        features=dataset_features(image_size, dart_noise > 0, cameras),
                        use_videos=True, rgb_encoder=encoder)
         tried, failures, next_seed, fresh = [], {}, seed_start, True
+        mujoco = installed("mujoco")
     side = {"repo_id": repo_id, "task": task_arg, "image_size": list(image_size),
             "dart_noise": dart_noise, "vcodec": codec, "tried": sorted(set(tried)),
-            "failures": failures, "expert": expert, "cameras": list(cameras)}
+            "failures": failures, "expert": expert, "cameras": list(cameras),
+            **({"mujoco": mujoco} if mujoco else {})}
     write_sidecar(root, side)
     if fresh:
         checkpoint(root, side)  # the empty dataset: what a kill before any episode returns to

@@ -5,7 +5,8 @@ on one ``episode.run_episode`` each; ``loop`` hands out seeds and writes results
 order through ``so101_sim.dataset``. ``demo`` renders a short expert episode to images.
 """
 
-from so101_sim.record.api import record, replay
+from so101_sim.record.api import record, replay, replay_versions
 from so101_sim.record.episode import check_dart_noise, expert_options, run_episode
 
-__all__ = ["check_dart_noise", "expert_options", "record", "replay", "run_episode"]
+__all__ = ["check_dart_noise", "expert_options", "record", "replay", "replay_versions",
+           "run_episode"]

@@ -43,6 +43,7 @@ from so101_sim.sim.rendering import select_gl_backend
 from so101_sim.tasks import load_task
 from so101_sim.utils.devices import RECORD_WORKER_MB, cpu_count, workers_that_fit
 from so101_sim.utils.locks import folder_lock
+from so101_sim.utils.versions import installed
 from so101_sim.utils.video_backend import quiet_libav
 from so101_sim.workers import check_backend
 
@@ -208,3 +209,12 @@ def replay(dataset_dir: str | Path, episode: int) -> float:
     finally:
         env.close()
     return worst
+
+
+def replay_versions(dataset_dir: str | Path) -> str:
+    """"" when this MuJoCo is the one that recorded the dataset, else what each was (physics
+    may differ between releases, so a nonzero deviation may be theirs, not the dataset's)."""
+    recorded, now = read_sidecar(Path(dataset_dir)).get("mujoco"), installed("mujoco")
+    if not recorded or recorded == now:
+        return ""
+    return f" (recorded with MuJoCo {recorded}, re-simulated with {now})"
