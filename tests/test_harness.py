@@ -14,6 +14,7 @@ import signal
 import sys
 import threading
 import time
+from importlib import metadata
 from pathlib import Path
 
 import imageio.v2 as imageio
@@ -23,6 +24,7 @@ import pytest
 from so101_sim.cli import main
 from so101_sim.harness import ChunkRequest, PolicyInfo, evaluate, expert_policy, load_policy
 from so101_sim.harness.policies.lerobot import LeRobotPolicy
+from so101_sim.utils.versions import cpu_description
 
 sys.path.insert(0, str(Path(__file__).parent))
 from tiny_policy import make_tiny_diffusion_checkpoint, short_task
@@ -158,6 +160,7 @@ def test_outputs_videos_report_and_resume(tmp_path, capsys):
     report = (out / "report.md").read_text()
     assert "report.png" in report and (out / "report.png").stat().st_size > 10_000
     assert "Wilson" in report
+    assert f"mujoco {metadata.version('mujoco')}" in report and cpu_description() in report
 
     # A killed run: three episodes on disk, the last line torn mid-write.
     (out / "episodes.jsonl").write_text("\n".join(lines[:3]) + "\n" + lines[3][:25])

@@ -44,6 +44,10 @@ def write_report(out_dir: str | Path, result: dict[str, Any],
     for key, value in cfg.get("policy_details", {}).items():
         lines.append(f"| {key} | {value} |")
     lines.append(f"| policy fingerprint | `{cfg['policy_fingerprint']}` |")
+    if cfg.get("software"):  # what else the numbers depend on
+        soft = ", ".join(f"{k} {v}" for k, v in cfg["software"].items() if v)
+        isa = f" (torch kernels: {cfg['cpu_isa']})" if cfg.get("cpu_isa") else ""
+        lines.append(f"| software / CPU | {soft} / {cfg.get('cpu', '?')}{isa} |")
     if cfg.get("video_paths"):
         lines += ["", "## Videos", ""]
         lines += [f"- [{Path(p).name}]({os.path.relpath(Path(p).resolve(), out.resolve())})"
