@@ -103,3 +103,7 @@ def test_version_names_the_package_and_what_results_depend_on(capsys):
     assert line.startswith(f"so101-sim {so101_sim.__version__} (")
     for dist in ("mujoco", "lerobot", "torch", "gymnasium"):
         assert f"{dist} {metadata.version(dist)}" in line
+    # `python -m so101_sim` is the same command
+    run = subprocess.run([sys.executable, "-m", "so101_sim", "--version"], capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.strip() == line, run.stderr[-2000:]
