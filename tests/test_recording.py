@@ -209,6 +209,42 @@ def test_interrupt_then_resume(tmp_path: Path, sig: signal.Signals, workers: int
     assert np.isfinite(ds[len(ds) - 1]["observation.state"].numpy()).all()
 
 
+def test_a_ctrl_c_lost_in_a_gc_callback_still_stops_recording(tmp_path: Path,
+                                                              monkeypatch) -> None:
+    """Python drops an exception raised in a weakref callback, so a Ctrl-C landing there
+    recorded every episode asked for. Now the loop stops at its next turn, finalized."""
+    import weakref
+
+    import so101_sim.record.loop as loop
+
+    dropped: list[type] = []
+    monkeypatch.setattr(sys, "unraisablehook", lambda u: dropped.append(u.exc_type))
+
+    class Thing:
+        pass
+
+    def lost_ctrl_c(name: str) -> None:
+        if name != "spooled" or dropped:
+            return
+
+        def callback(_ref: object) -> None:
+            os.kill(os.getpid(), signal.SIGINT)
+            sum(range(1000))  # the handler runs here, inside the callback
+
+        thing = Thing()
+        keep = weakref.ref(thing, callback)
+        del thing
+        assert keep() is None and dropped == [KeyboardInterrupt]
+
+    monkeypatch.setattr(loop, "crash_point", lost_ctrl_c)
+    root = tmp_path / "ds"
+    with pytest.raises(KeyboardInterrupt):
+        record(root, 4, image_size=SMALL, progress=False)
+    assert 1 <= _load(root).num_episodes < 4
+    assert stored_seeds(root) == list(range(_load(root).num_episodes))
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 # ----------------------------------------------------------------------------- workers
 def _episodes(root: Path, columns: list[str]) -> dict[int, dict[str, np.ndarray]]:
     """Per episode seed: every column as an array, rows in frame order."""

@@ -1,8 +1,10 @@
 """Ctrl-C and SIGTERM while a dataset is being written: end with a finalized dataset.
 
 Every writer of a dataset (``record``, ``eval --save-rollouts``) installs ``Interrupts``: the
-signal becomes a KeyboardInterrupt, deferred while an episode is being saved. ``train`` (during
-start-up) and ``curve`` (between checkpoints) install it too.
+signal becomes a KeyboardInterrupt, deferred while an episode is being saved; one that Python
+dropped (raised inside a garbage-collection callback) is raised again by ``check`` at the
+loop's next turn. ``train`` (during start-up) and ``curve`` (between checkpoints) install it
+too.
 """
 
 from __future__ import annotations

@@ -177,6 +177,7 @@ def record_episodes(opened: Opened, tally: Tally, spec: RecorderSpec, workers: i
                                        "so101_sim.sim.env", "so101_sim.expert"))
             tally.worker_start_s = pool.start_s
             while True:
+                interrupts.check()  # a Ctrl-C lost in a garbage-collection callback
                 for seed in dispatch.to_send(tally.kept, tally.n_episodes):
                     meta = spool.meta(seed)
                     if dispatch.usable(meta):
