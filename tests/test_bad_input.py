@@ -448,6 +448,7 @@ def test_a_ctrl_c_lost_in_a_gc_callback_still_stops_the_curve(tmp_path, monkeypa
 
     run = _run_with_checkpoints(tmp_path / "run", [100, 200, 300])
     evaluated, dropped = [], []
+    before = signal.getsignal(signal.SIGINT)
     monkeypatch.setattr(sys, "unraisablehook", lambda u: dropped.append(u.exc_type))
 
     def first_one_signals(run_: Path, task: str, step: int, *_: object) -> None:
@@ -471,7 +472,7 @@ def test_a_ctrl_c_lost_in_a_gc_callback_still_stops_the_curve(tmp_path, monkeypa
     with pytest.raises(KeyboardInterrupt):
         curve.evaluate_curve(run, episodes=2)
     assert evaluated == [100]
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    assert signal.getsignal(signal.SIGINT) is before  # restored
 
 
 def test_sigterm_ends_a_curve_with_its_line(tmp_path, monkeypatch, capsys) -> None:
@@ -482,6 +483,7 @@ def test_sigterm_ends_a_curve_with_its_line(tmp_path, monkeypatch, capsys) -> No
 
     run = _run_with_checkpoints(tmp_path / "run", [100, 200])
     evaluated = []
+    before = signal.getsignal(signal.SIGTERM)  # another test's handler may be in place
 
     def terminated(run_: Path, task: str, step: int, *_: object) -> None:
         evaluated.append(step)
@@ -492,7 +494,7 @@ def test_sigterm_ends_a_curve_with_its_line(tmp_path, monkeypatch, capsys) -> No
     assert main(["curve", str(run), "--episodes", "2"]) == 130
     assert evaluated == [100]
     assert "so101-sim curve: interrupted; every finished episode is kept" in capsys.readouterr().err
-    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    assert signal.getsignal(signal.SIGTERM) is before  # restored
 
 
 def test_every_cli_option_says_what_it_does() -> None:
