@@ -332,16 +332,6 @@ def run_child(job: dict[str, Any], backend: str, core: int,
     return None, (lines[-1] if lines else f"exit code {proc.returncode}")
 
 
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def _verdict(value: float, target: float, share: float = 1.0) -> str:
     """PASS/FAIL on the wall-clock rate; when the core was shared (the child got less than
     CONTENDED of it), add the rate per CPU-second, i.e. what an unshared core would give."""
@@ -539,10 +529,12 @@ def main() -> None:
     elapsed = time.perf_counter() - t_start
 
     # ------------------------------------------------------------------ report
+    from so101_sim.utils.versions import cpu_description
+
     gl = "; ".join(f"{b}: {s}" for b, s in rep.gl.items()) or "none"
     cores = sorted({c for r in rep.raw.values() for c in r.get("affinity", [])})
     print()
-    print(f"Machine: {_cpu_model()}, {os.cpu_count()} logical CPUs; cores used: {cores} "
+    print(f"Machine: {cpu_description()}, {os.cpu_count()} logical CPUs; cores used: {cores} "
           f"(each config a single child process pinned there); Python "
           f"{platform.python_version()}, mujoco {mujoco.__version__}; GL: {gl}; "
           f"LP_NUM_THREADS={os.environ.get('LP_NUM_THREADS', 'unset')}; 1-min load avg "

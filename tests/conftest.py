@@ -39,6 +39,36 @@ def state_env():
     env.close()
 
 
+@pytest.fixture
+def lose_a_ctrl_c(monkeypatch):
+    """A function that sends this process SIGINT while a weakref callback runs, where Python
+    prints and drops the handler's KeyboardInterrupt (as during garbage collection); it
+    asserts the interrupt was dropped and returns how many have been so far."""
+    import sys
+    import weakref
+
+    dropped: list[type] = []
+    monkeypatch.setattr(sys, "unraisablehook", lambda u: dropped.append(u.exc_type)
+                        if u.exc_type is KeyboardInterrupt else None)  # not another __del__'s
+
+    class Thing:
+        pass
+
+    def callback(_ref: object) -> None:
+        os.kill(os.getpid(), signal.SIGINT)
+        sum(range(1000))  # the handler runs here, inside the callback
+
+    def lose() -> int:
+        before = len(dropped)
+        thing = Thing()
+        keep = weakref.ref(thing, callback)
+        del thing  # the callback runs now
+        assert keep() is None and dropped[before:] == [KeyboardInterrupt]
+        return len(dropped)
+
+    return lose
+
+
 # Seconds each module took in one `make test` (2026-11-30, 2 workers, 1659 s in all). Only the
 # order of the work depends on them: the longest modules start first, so the two workers end
 # together (longest-first scheduling). A module not listed runs after these.

@@ -287,10 +287,10 @@ def open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
         failures = dict(side.get("failures", {}))
         next_seed = max([seed_start - 1, *tried]) + 1
         fresh = False
-        mujoco = side.get("mujoco")  # what its episodes so far were simulated with
-        if mujoco and mujoco != installed("mujoco"):
+        mujoco, now = side.get("mujoco"), installed("mujoco")  # its episodes' MuJoCo, this one
+        if mujoco and mujoco != now:
             print(f"so101-sim record: {root} was started with MuJoCo {mujoco} and goes on with "
-                  f"{installed('mujoco')}: `replay` may not reproduce every episode bit for bit")
+                  f"{now}: `replay` may not reproduce every episode bit for bit")
     else:
         codec = vcodec or DEFAULT_VCODEC
         encoder = encoder_config(codec)
