@@ -20,6 +20,7 @@ import subprocess
 import sys
 import time
 from collections import defaultdict
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
@@ -27,10 +28,10 @@ import pytest
 
 from so101_sim.cli import main
 from so101_sim.dataset import stored_seeds
-from so101_sim.dataset.store import CRASH_ENV, SCRATCH, SPOOL, Spool
+from so101_sim.dataset.store import CRASH_ENV, SCRATCH, SPOOL, Spool, read_sidecar
 from so101_sim.harness import evaluate, expert_policy
 from so101_sim.harness.rollouts import DEFAULT_REPO_ID
-from so101_sim.record import replay
+from so101_sim.record import replay, replay_versions
 
 sys.path.insert(0, str(Path(__file__).parent))
 from tiny_policy import short_task
@@ -162,6 +163,8 @@ def test_rollout_dataset_holds_every_episode_as_executed(runs):
         else:
             assert _sha(eps[seed]["action"]) == outcome[seed]["actions_sha"]
         assert replay(root, k) == 0.0  # seed + stored actions re-simulate the stored states
+    assert read_sidecar(root)["mujoco"] == metadata.version("mujoco")
+    assert replay_versions(root) == ""  # recorded and replayed with this MuJoCo
 
 
 def test_training_reads_the_rollout_dataset(runs):

@@ -247,10 +247,14 @@ def rollout_sink(save_rollouts: str | Path, *, resume: bool, spec: TaskSpec, tas
     if not isinstance(checkpoint_every, int) or checkpoint_every < 1:
         raise ValueError(f"checkpoint_every={checkpoint_every!r} is invalid; expected an "
                          "integer >= 1 (episodes between rollout-dataset checkpoints)")
+    from so101_sim.utils.versions import installed
+
+    mujoco = installed("mujoco")  # what ``replay`` compares with the one re-simulating
     side = {"kind": ROLLOUTS_KIND, "repo_id": repo_id, "task": task_arg,
             "image_size": list(image_size), "fps": spec.fps,
             "eval_out": str(Path(eval_out).resolve()),
-            "eval": json.loads(json.dumps(identity, default=list))}
+            "eval": json.loads(json.dumps(identity, default=list)),
+            **({"mujoco": mujoco} if mujoco else {})}
     sink = RolloutSink(Path(save_rollouts), seeds, spec, side, image_size, checkpoint_every)
     sink.check(resume)
     return sink
