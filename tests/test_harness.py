@@ -250,6 +250,25 @@ def test_user_policy_protocol(short, tmp_path):
     assert "direct" in res["config"]["images"]
 
 
+def test_a_ctrl_c_lost_in_a_gc_callback_still_stops_eval(short, tmp_path, lose_a_ctrl_c):
+    """Python drops an exception raised in a weakref callback: a Ctrl-C landing there ran
+    every episode. Now the loop stops at its next turn, with the finished episodes kept."""
+
+    class LosesACtrlC(_HoldStill):
+        def start_episode(self, slot: int, seed: int) -> None:
+            if seed == 100_001:  # the second episode: the first one is finished
+                lose_a_ctrl_c()
+
+    before = signal.getsignal(signal.SIGINT)
+    assert before is signal.default_int_handler  # what eval takes over (else leaves alone)
+    with pytest.raises(KeyboardInterrupt):
+        evaluate(LosesACtrlC(), task=str(short), episodes=4, n_envs=1, videos=0,
+                 report=False, out_dir=tmp_path / "run", **_quiet())
+    lines = (tmp_path / "run" / "episodes.jsonl").read_text().splitlines()
+    assert [json.loads(x)["seed"] for x in lines] == [100_000]
+    assert signal.getsignal(signal.SIGINT) is before  # restored
+
+
 class _CountThreads(_HoldStill):
     """Notes torch's CPU thread count at every forward."""
 

@@ -4,7 +4,7 @@ Every writer of a dataset (``record``, ``eval --save-rollouts``) installs ``Inte
 signal becomes a KeyboardInterrupt, deferred while an episode is being saved; one that Python
 dropped (raised inside a garbage-collection callback) is raised again by ``check`` at the
 loop's next turn. ``train`` (during start-up) and ``curve`` (between checkpoints) install it
-too.
+too, and ``eval`` without a dataset for SIGINT alone.
 """
 
 from __future__ import annotations
@@ -17,9 +17,11 @@ from typing import Any
 
 class Interrupts:
     """Turns SIGINT/SIGTERM into KeyboardInterrupt, deferred while an episode is being saved,
-    so that Ctrl-C ends a run with a finalized dataset and a checkpoint."""
+    so that Ctrl-C ends a run with a finalized dataset and a checkpoint. `signals`: those it
+    turns (the others keep their handlers)."""
 
-    def __init__(self) -> None:
+    def __init__(self, signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> None:
+        self.signals = signals
         self.critical = False
         self.pending: int | None = None
         self.seen: int | None = None  # the last signal handled, raised or deferred
@@ -41,7 +43,7 @@ class Interrupts:
             raise KeyboardInterrupt(f"signal {self.seen}")
 
     def install(self) -> None:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in self.signals:
             with suppress(ValueError):  # not the main thread: leave signals alone
                 self._old[sig] = signal.signal(sig, self._handler)
 

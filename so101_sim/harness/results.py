@@ -263,3 +263,16 @@ def per_episode(records: list[EpisodeRecord]) -> list[dict[str, Any]]:
              "max_reward": r.max_reward, "steps": r.steps, "seconds": r.seconds,
              "actions_sha": r.actions_sha,
              **({"video": r.video} if r.video else {})} for r in records]
+
+
+def summary_line(policy: str, task: str, agg: dict[str, Any], out: Path,
+                 images: str | None = None) -> str:
+    lo, hi = agg["success_ci95"]
+    t = agg["time"]
+    modes = ", ".join(f"{k} {v}" for k, v in agg["failure_modes"].items()) or "none"
+    return (f"{policy} on {task}: success {agg['n_success']}/{agg['n_episodes']} = "
+            f"{agg['pc_success']:.1f}% (95% CI {lo:.1f}-{hi:.1f}); failures: {modes}; "
+            f"avg length {agg['avg_episode_len']:.0f} steps; {agg['eval_s']:.1f} s "
+            f"({agg['eval_ep_s']:.2f} s/episode; physics {t['physics_s']:.1f} s, render "
+            f"{t['render_s']:.1f} s, policy {t['policy_s']:.1f} s)"
+            + (f"; images: {images}" if images else "") + f" -> {out}")

@@ -14,6 +14,7 @@ LeRobotDataset (``so101_sim.harness.rollouts``); without it nothing here changes
 
 from __future__ import annotations
 
+import signal
 import time
 from collections import Counter, deque
 from collections.abc import Callable
@@ -25,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from so101_sim.dataset import EVAL_SEED_START
+from so101_sim.dataset.interrupts import Interrupts
 from so101_sim.harness.env_worker import EnvWorkerConfig
 from so101_sim.harness.forwards import Forwards, forward_stats
 from so101_sim.harness.frames import Rendering, choose_rendering, to_policy_obs, with_cameras
@@ -35,6 +37,7 @@ from so101_sim.harness.results import (
     aggregate,
     lock_eval_folders,
     per_episode,
+    summary_line,
 )
 from so101_sim.harness.warmup import worker_preload
 from so101_sim.tasks import TaskSpec, load_task, task_ref
@@ -153,17 +156,26 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
     forwards_seen = forward_stats()
     reruns: list[dict[str, Any]] = []
     finished = False
+    # The loop asks each turn for a Ctrl-C dropped during garbage collection (else SIGINT keeps
+    # Python's handler's behaviour; SIGTERM, or a SIGINT ignored or handled by others, as is).
+    own = (Interrupts((signal.SIGINT,)) if sink is None
+           and signal.getsignal(signal.SIGINT) is signal.default_int_handler else None)
+    interrupts = sink.interrupts if sink is not None else own
+    if own is not None:
+        own.install()
     try:
         if todo:
             with torch_threads(threads or eval_policy_threads()):
                 n_run, workers, forwards_seen = _run(
                     policy, run, spec, rendering, todo, done, seed_start, episodes, n_envs,
                     videos, worker_timeout_s, max_retries, progress, backend, ray_address,
-                    reruns, log, sink, stop)
+                    reruns, log, sink, stop, interrupts.check if interrupts else None)
         finished = True
     finally:
         if sink is not None:
             sink.close(finished)
+        if own is not None:
+            own.restore()
     eval_s = time.perf_counter() - t_start
 
     records = [done[s] for s in sorted(done)]
@@ -189,19 +201,6 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
         write_report(run.path, result, records)
     log(result["summary"])
     return result
-
-
-def summary_line(policy: str, task: str, agg: dict[str, Any], out: Path,
-                 images: str | None = None) -> str:
-    lo, hi = agg["success_ci95"]
-    t = agg["time"]
-    modes = ", ".join(f"{k} {v}" for k, v in agg["failure_modes"].items()) or "none"
-    return (f"{policy} on {task}: success {agg['n_success']}/{agg['n_episodes']} = "
-            f"{agg['pc_success']:.1f}% (95% CI {lo:.1f}-{hi:.1f}); failures: {modes}; "
-            f"avg length {agg['avg_episode_len']:.0f} steps; {agg['eval_s']:.1f} s "
-            f"({agg['eval_ep_s']:.2f} s/episode; physics {t['physics_s']:.1f} s, render "
-            f"{t['render_s']:.1f} s, policy {t['policy_s']:.1f} s)"
-            + (f"; images: {images}" if images else "") + f" -> {out}")
 
 
 def _check_args(episodes: int, n_envs: int, seed_start: int, videos: int,
@@ -239,8 +238,8 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
          done: dict[int, EpisodeRecord], seed_start: int, episodes: int, n_envs: int,
          videos: int, worker_timeout_s: float, max_retries: int, progress: bool,
          backend: str, ray_address: str | None, reruns: list[dict[str, Any]],
-         log: Callable[[str], None], sink: Any = None, stop: Any = None
-         ) -> tuple[int, PoolInfo, dict[str, Any]]:
+         log: Callable[[str], None], sink: Any = None, stop: Any = None,
+         check: Callable[[], None] | None = None) -> tuple[int, PoolInfo, dict[str, Any]]:
     """Run every seed in `todo`; add each finished episode to `done` and to the run folder
     (and, with a rollout `sink`, to its dataset), and each episode that had to be run again
     to `reruns`. Returns (episodes run, workers, forward stats: the most forwards in flight
@@ -356,6 +355,8 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                         pad_to=pad_to)
     try:
         while todo or any(s.seed is not None for s in slots):
+            if check is not None:
+                check()
             for i, s in enumerate(slots):
                 if s.seed is None and todo:
                     seed = todo.popleft()
