@@ -494,3 +494,14 @@ def test_every_cli_option_says_what_it_does() -> None:
     bare = [f"{name} {a.option_strings or a.dest}" for name, p in sub.choices.items()
             for a in p._actions if not a.help and "--help" not in a.option_strings]
     assert bare == []
+
+
+def test_the_typical_run_in_the_top_level_help_parses() -> None:
+    """Each command `so101-sim --help` shows as a typical run is accepted as written."""
+    from so101_sim.cli.parser import build_parser
+
+    parser = build_parser()
+    lines = [x.split()[1:] for x in parser.epilog.splitlines() if x.startswith("  so101-sim ")]
+    assert [x[0] for x in lines] == ["record", "train", "eval", "compare"]
+    for argv in lines:
+        assert parser.parse_args(argv).command == argv[0]

@@ -110,7 +110,15 @@ def add_backend_args(p: argparse.ArgumentParser, count_flag: str) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="so101-sim", description="`so101-sim` command line.")
+    parser = argparse.ArgumentParser(
+        prog="so101-sim", formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="SO-101 arm in MuJoCo: record scripted demonstrations, train a policy on "
+                    "them,\nevaluate it closed-loop with intervals, compare two evaluations.",
+        epilog="a typical run:\n  so101-sim record --episodes 100 --out DATA\n"
+               "  so101-sim train --dataset DATA --out RUN\n"
+               "  so101-sim eval --policy RUN/checkpoints/last/pretrained_model --out EVAL\n"
+               "  so101-sim compare EVAL OTHER_EVAL\n"
+               "`so101-sim COMMAND --help` lists a command's options.")
     parser.add_argument("--version", action=ShowVersion,
                         help="print the versions of so101-sim, MuJoCo, lerobot, torch and "
                              "Gymnasium, and exit")
