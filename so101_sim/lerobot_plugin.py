@@ -31,6 +31,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from so101_sim import ENV_ID
 from so101_sim.sim import OBS_TYPES, env_state_size
 from so101_sim.tasks import ALL_CAMERAS, load_task
+from so101_sim.utils.lerobot_cli import config_errors, one_line_errors
 from so101_sim.utils.units import FEATURE_NAMES
 
 # lerobot 0.6.1's `load_plugin` lists the submodules of whatever `discover_packages_path`
@@ -40,6 +41,7 @@ __path__: list[str] = []
 
 ENV_TYPE = "so101_pick_place"
 ACTION_DIM = len(FEATURE_NAMES)
+one_line_errors()  # a lerobot command given a bad --env.* value says so in one line
 
 
 @EnvConfig.register_subclass(ENV_TYPE)
@@ -71,6 +73,11 @@ class SO101PickPlaceEnvConfig(EnvConfig):
     )
 
     def __post_init__(self) -> None:
+        with config_errors(f"--env.type={ENV_TYPE}"):  # a lerobot command: one line
+            self._settle()
+
+    def _settle(self) -> None:
+        """Check the fields, fill in the task's fps and episode cap, derive ``features``."""
         if self.obs_type not in OBS_TYPES:
             raise ValueError(f"obs_type={self.obs_type!r} is invalid; expected one of {OBS_TYPES}")
         if not self.task:

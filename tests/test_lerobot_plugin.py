@@ -82,6 +82,37 @@ def test_invalid_fields_are_rejected(kwargs: dict) -> None:
         SO101PickPlaceEnvConfig(**kwargs)
 
 
+def test_a_lerobot_command_reports_a_bad_env_value_in_one_line(monkeypatch, capsys) -> None:
+    """draccus wraps the config's ValueError in a ParsingError, some 40 lines of traceback; a
+    lerobot command prints our message in one line, anything else reports as before."""
+    import sys
+    from dataclasses import dataclass
+
+    import draccus
+
+    from so101_sim.utils.lerobot_cli import one_line_errors
+
+    reported = []
+    monkeypatch.setattr(sys, "excepthook", lambda *a: reported.append(a[1]))
+    assert not one_line_errors("/usr/bin/python")  # not a lerobot command: nothing installed
+    assert one_line_errors("/venv/bin/lerobot-eval") and one_line_errors("lerobot-eval")
+    @dataclass
+    class Command:  # a lerobot command's config, as lerobot-eval's has an `env` field
+        env: EnvConfig | None = None
+
+    with pytest.raises(draccus.utils.DecodingError) as caught:
+        draccus.parse(Command, args=[f"--env.type={ENV_TYPE}", "--env.task=no_such_task"])
+    assert "Traceback" not in str(caught.value)
+    sys.excepthook(caught.type, caught.value, caught.tb)
+    assert capsys.readouterr().err.splitlines() == [
+        f"lerobot-eval: error: --env.type={ENV_TYPE}: unknown task 'no_such_task'; expected one "
+        "of ['lift', 'pick_place', 'pick_place_anywhere', 'pick_place_dr', 'stack', 'tidy'] or "
+        "a path to a task .toml file"]
+    other = RuntimeError("not a config error")
+    sys.excepthook(RuntimeError, other, None)
+    assert reported == [other] and capsys.readouterr().err == ""  # the hook that was there
+
+
 def test_make_env_reset_and_preprocess(built) -> None:
     cfg, envs = built
     vec = _vec(envs)

@@ -193,8 +193,12 @@ def test_episode_rules_without_and_with_a_dataset(tmp_path):
 
 
 def test_bad_config_values_are_named(tmp_path):
-    with pytest.raises(ValueError, match=r"episode_end='later'.*hold"):
+    from so101_sim.utils.lerobot_cli import TAG
+
+    with pytest.raises(ValueError, match=r"episode_end='later'.*hold") as caught:
         SO101SimConfig(episode_end="later")
+    # what a lerobot command prints in one line ahead of the message (utils.lerobot_cli)
+    assert getattr(caught.value, TAG) == "--robot.type=so101_sim"
     with pytest.raises(ValueError, match="render_height/width=480x0"):
         SO101SimConfig(render_height=480)
     with pytest.raises(ValueError, match=r"camera_names=\['top'\]"):

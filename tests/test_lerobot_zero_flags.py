@@ -68,7 +68,9 @@ def test_lerobot_eval_runs_without_discovery_flags(tmp_path):
 
     bad = subprocess.run([*cmd[:2], "--env.task=no_such_task", *cmd[3:]], capture_output=True,
                          text=True, timeout=600, env=env)
-    assert bad.returncode != 0 and "no_such_task" in bad.stderr
+    assert bad.returncode != 0 and "Traceback" not in bad.stderr, bad.stderr[-3000:]
+    assert bad.stderr.strip().splitlines()[-1].startswith(
+        f"lerobot-eval: error: --env.type={ENV_TYPE}: unknown task 'no_such_task'; expected")
 
 
 def _local_hub_repo(cache: Path, repo_id: str, files: dict[str, Path]) -> None:

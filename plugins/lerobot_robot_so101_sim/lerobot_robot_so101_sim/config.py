@@ -13,10 +13,13 @@ from pathlib import Path
 from lerobot.robots.config import RobotConfig
 from lerobot.teleoperators.config import TeleoperatorConfig
 
+from so101_sim.utils.lerobot_cli import config_errors, one_line_errors
+
 ROBOT_TYPE = "so101_sim"
 TELEOP_TYPE = "so101_sim_expert"
 EPISODE_END = ("auto", "reset", "hold")
 _SIZE_RANGE = (16, 2048)
+one_line_errors()  # a lerobot command given a bad --robot.* value says so in one line
 
 
 @RobotConfig.register_subclass(ROBOT_TYPE)
@@ -55,6 +58,10 @@ class SO101SimConfig(RobotConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        with config_errors(f"--robot.type={ROBOT_TYPE}"):  # a lerobot command: one line
+            self._check()
+
+    def _check(self) -> None:
         if self.episode_end not in EPISODE_END:
             raise ValueError(f"--robot.episode_end={self.episode_end!r} is invalid; expected "
                              f"one of {EPISODE_END}, e.g. --robot.episode_end=hold")

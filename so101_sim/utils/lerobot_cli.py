@@ -1,0 +1,64 @@
+"""One line instead of a traceback when a lerobot CLI is given a bad value for our configs.
+
+lerobot's CLIs parse ``--env.*`` / ``--robot.*`` with draccus, which wraps the ValueError of a
+config's ``__post_init__`` in a ParsingError: what the user sees is some 40 lines of draccus
+frames with our message in the middle. ``config_errors`` tags such an error with the flag group
+it belongs to, and ``one_line_errors`` (installed by the plugins when a ``lerobot-*`` command
+imports them) prints a tagged error as ``lerobot-eval: error: --env.type=so101_pick_place:
+<message>``. Every other exception, and any use outside lerobot's commands, keeps Python's own
+report. Imports nothing heavy.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from types import TracebackType
+
+TAG = "so101_sim_flags"  # attribute set on a tagged exception: the flag group, e.g. --env.type=X
+
+
+@contextmanager
+def config_errors(flags: str) -> Iterator[None]:
+    """Tag a ValueError raised inside with `flags` (how the user named the config)."""
+    try:
+        yield
+    except ValueError as exc:
+        setattr(exc, TAG, flags)
+        raise
+
+
+def tagged(exc: BaseException | None) -> BaseException | None:
+    """The first tagged exception in `exc`'s chain of causes, or None."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        if getattr(exc, TAG, None):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def one_line_errors(argv0: str | None = None) -> bool:
+    """Under a ``lerobot-*`` command, report a tagged config error in one line; returns whether
+    the hook is in place. Installed once; other exceptions go to the hook that was there."""
+    prog = Path(argv0 if argv0 is not None else (sys.argv[0] if sys.argv else "")).name
+    if not prog.startswith("lerobot"):
+        return False
+    if getattr(sys.excepthook, TAG, False):
+        return True
+    previous = sys.excepthook
+
+    def hook(kind: type[BaseException], exc: BaseException,
+             tb: TracebackType | None) -> None:
+        ours = tagged(exc)
+        if ours is None:
+            previous(kind, exc, tb)
+            return
+        print(f"{prog}: error: {getattr(ours, TAG)}: {ours}", file=sys.stderr)
+
+    setattr(hook, TAG, True)
+    sys.excepthook = hook
+    return True
