@@ -166,22 +166,37 @@ def test_outputs_videos_report_and_resume(tmp_path, capsys):
     (out / "episodes.jsonl").write_text("\n".join(lines[:3]) + "\n" + lines[3][:25])
     (out / "eval_info.json").unlink()
 
-    def resume(episodes: int, videos: int, done: int) -> None:
+    def resume(episodes: int, videos: int, done: int) -> tuple[str, dict]:
         """`eval --resume`: it says how many seeds it kept; the first ones are the run's."""
         assert main(["eval", "--policy", "expert", "--episodes", str(episodes), "--n-envs",
                      "2", "--videos", str(videos), "--image-size", "48x64", "--out", str(out),
                      "--resume"]) == 0
-        assert f"({done} done, {episodes - done} to run)" in capsys.readouterr().out
+        said = capsys.readouterr().out
+        assert f"({done} done, {episodes - done} to run)" in said
         again = json.loads((out / "eval_info.json").read_text())
         assert [e["seed"] for e in again["per_episode"]] == list(range(100000,
                                                                        100000 + episodes))
         assert _strip_times(again["per_episode"][:5]) == _strip_times(info["per_episode"])
         assert again["aggregated"]["n_episodes"] == episodes
+        return said, again
 
-    resume(5, 1, done=3)
+    said, again = resume(5, 1, done=3)
+    assert "note:" not in said and "earlier_setups" not in again["config"]  # the same setup
     # More episodes on --resume extend the run: the first five are kept, two more run.
     resume(7, 0, done=5)
-    with pytest.raises(ValueError, match="episodes: 7 there, 5 now"):
+    # Episodes finished with another torch (as if upgraded since): a resume says so and
+    # eval_info keeps that setup; the next resume still knows.
+    config = json.loads((out / "eval_config.json").read_text())
+    now = config["setups"][-1]
+    then = {**now, "software": {**now["software"], "torch": "0.0.1"}}
+    (out / "eval_config.json").write_text(json.dumps({**config, "setups": [then]}))
+    for n in (8, 9):
+        said, again = resume(n, 0, done=n - 1)
+        assert (f"note: the episodes already in {out} ran with another setup (torch 0.0.1 vs "
+                f"{now['software']['torch']}, then vs now)") in said
+        assert again["config"]["earlier_setups"] == [then]
+        assert again["config"]["software"] == now["software"]
+    with pytest.raises(ValueError, match="episodes: 9 there, 5 now"):
         evaluate("expert", episodes=5, out_dir=out, resume=True, **_quiet())
 
     with pytest.raises(ValueError, match="--resume"):

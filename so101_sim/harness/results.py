@@ -20,6 +20,7 @@ from so101_sim.harness.stats import wilson_interval
 from so101_sim.utils.atomic import append_line, drop_torn_tail, read_jsonl, write_json_atomic
 from so101_sim.utils.locks import hold_folder
 from so101_sim.utils.paths import foreign_folder
+from so101_sim.utils.versions import setup_differences
 
 EPISODES = "episodes.jsonl"
 CONFIG = "eval_config.json"
@@ -61,12 +62,15 @@ class RunDir:
         self.config_path = self.path / CONFIG
         self.info_path = self.path / INFO
         self.videos_dir = self.path / "videos"
+        self.setups: list[dict[str, Any]] = []  # those its episodes ran with (``prepare``)
 
-    def prepare(self, identity: dict[str, Any], resume: bool,
-                may_grow: tuple[str, ...] = ()) -> dict[int, EpisodeRecord]:
+    def prepare(self, identity: dict[str, Any], resume: bool, may_grow: tuple[str, ...] = (),
+                setup: dict[str, Any] | None = None) -> dict[int, EpisodeRecord]:
         """Create the folder, or check it for ``--resume``; return the episodes already done.
         A count named in `may_grow` (``episodes``: the seeds run in order, so a longer run
-        starts with the shorter one's seeds) may be larger than the folder's on resume."""
+        starts with the shorter one's seeds) may be larger than the folder's on resume.
+        `setup` (``utils.versions.run_setup``) joins the setups its episodes ran with."""
+        old: dict[str, Any] = {}
         if (what := foreign_folder(self.path)) is not None:  # e.g. --out the --policy folder
             raise ValueError(f"{self.path} {what}; an eval writes {INFO}, report.md and "
                              "videos/ there, over or among its files; choose another --out")
@@ -89,10 +93,39 @@ class RunDir:
                                  + "; ".join(diff) + "); use the same arguments as that run, "
                                  "or a new --out")
         self.path.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(self.config_path, identity)
         if resume:
             drop_torn_tail(self.episodes_path)  # the next record starts on a line of its own
-        return self.done() if resume else {}
+        done = self.done() if resume else {}
+        if setup is not None:  # the setups that differ from this one, then this one
+            earlier = old.get("setups") if done and isinstance(old.get("setups"), list) else []
+            self.setups = [s for s in earlier if isinstance(s, dict)
+                           and setup_differences(s, setup)] + [setup]
+        write_json_atomic(self.config_path, {**identity, "setups": self.setups})
+        return done
+
+    def earlier_setups(self) -> dict[str, Any]:
+        """For eval_info's config: the other setups this folder's episodes ran with, if any."""
+        return {"earlier_setups": self.setups[:-1]} if len(self.setups) > 1 else {}
+
+    def setup_note(self) -> str:
+        """One line when episodes in this folder ran with another setup than this run's."""
+        if len(self.setups) < 2:
+            return ""
+        differ = "; ".join(setup_differences(self.setups[0], self.setups[-1]))
+        return (f"so101-sim eval: note: the episodes already in {self.path} ran with another "
+                f"setup ({differ}, then vs now); actions differ bitwise between setups, so this "
+                "run's results mix them")
+
+    def save_video(self, path: str | None, mp4: bytes | None) -> str | None:
+        """Write a worker's episode video under its final name (whole, or not at all)."""
+        if path is None or mp4 is None:
+            return None
+        final = Path(path)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        part = final.with_name(final.stem + ".part.mp4")
+        part.write_bytes(mp4)
+        part.replace(final)
+        return str(final)
 
     def done(self) -> dict[int, EpisodeRecord]:
         """Finished episodes by seed (a torn last line from a killed run is dropped; a line

@@ -142,8 +142,11 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
         from so101_sim.workers.ray_connect import exit_on_sigterm
 
         exit_on_sigterm()
-    done = {s: r for s, r in run.prepare(identity, resume, may_grow=grow).items()
+    setup = run_setup()  # episodes finished with another one get a note (actions differ)
+    done = {s: r for s, r in run.prepare(identity, resume, may_grow=grow, setup=setup).items()
             if seed_start <= s < seed_start + episodes}
+    if run.setup_note():
+        log(run.setup_note())
     if sink is not None:
         done = _open_rollouts(sink, resume, done, save_rollouts, log)
     todo = deque(s for s in range(seed_start, seed_start + episodes) if s not in done)
@@ -186,7 +189,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
         "config": {**identity, "n_envs": n_envs, "images": rendering.label,
                    "policy_details": info.details, "workers": workers.to_dict(),
                    **({"policy_weights": info.weights} if info.weights else {}),
-                   **forwards_seen, **run_setup(),
+                   **forwards_seen, **setup, **run.earlier_setups(),
                    "reruns": reruns, "video_paths": [r.video for r in records if r.video],
                    **({"image_check": rendering.check} if rendering.check else {})},
     }
@@ -308,7 +311,7 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
                     sum_reward=float(sum(s.rewards)), max_reward=float(max(s.rewards)),
                     seconds=time.perf_counter() - s.t0, physics_s=s.physics_s,
                     render_s=s.render_s, policy_s=s.policy_s,
-                    video=_save_video(s.video, reply.get("video_mp4")),
+                    video=run.save_video(s.video, reply.get("video_mp4")),
                     actions_sha=reply["actions_sha"])
                 if sink is not None:  # spooled before its line: a kill loses neither
                     sink.add(reply["rollout"], lambda rec=rec: run.append(rec))
@@ -385,16 +388,3 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
         pool.close()
         bar.close()
     return n_run, workers, forwards.stats()
-
-
-def _save_video(path: str | None, mp4: bytes | None) -> str | None:
-    """Write a worker's episode video under its final name (whole, or not at all)."""
-    if path is None or mp4 is None:
-        return None
-    final = Path(path)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    part = final.with_name(final.stem + ".part.mp4")
-    part.write_bytes(mp4)
-    part.replace(final)
-    return str(final)
-
