@@ -202,3 +202,16 @@ def test_runs_on_other_software_or_cpu_are_compared_with_a_note(tmp_path, capsys
     assert "torch 2.11.0 vs 2.10.0" in (tmp_path / "cmp" / "compare.md").read_text()
     assert compare_runs(a, old, log=print)["setup_differences"] == []
     assert not [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("note:")]
+
+    # b, resumed on a's setup after an earlier part on torch 2.10.0: that part still counts
+    info = json.loads((b / "eval_info.json").read_text())
+    earlier = {k: info["config"][k] for k in ("software", "cpu", "cpu_isa")}
+    info["config"].update(software={**setup["software"], "torch": "2.11.0"}, cpu="Intel Xeon",
+                          cpu_isa="AVX512", earlier_setups=[earlier])
+    (b / "eval_info.json").write_text(json.dumps(info))
+    assert compare_runs(a, b, log=print)["setup_differences"] == [
+        "torch 2.11.0 vs 2.10.0", "CPU Intel Xeon vs AMD EPYC",
+        "torch's CPU kernels AVX512 vs AVX2"]
+    info["config"]["earlier_setups"] = []  # all on a's setup
+    (b / "eval_info.json").write_text(json.dumps(info))
+    assert compare_runs(a, b, log=print)["setup_differences"] == []

@@ -17,8 +17,9 @@ from typing import Any
 
 #: Distributions whose versions change what the suite computes (physics, policy, env API).
 DISTRIBUTIONS = ("so101-sim", "mujoco", "lerobot", "torch", "gymnasium")
-#: The keys of ``run_setup`` in an eval's config.
-SETUP_KEYS = ("software", "cpu", "cpu_isa")
+#: The keys of an eval's config that say what it ran on: ``run_setup``'s, and the setups a
+#: resumed run's earlier episodes ran with (``harness.results.RunDir``).
+SETUP_KEYS = ("software", "cpu", "cpu_isa", "earlier_setups")
 
 
 def installed(dist: str) -> str | None:
@@ -65,7 +66,22 @@ def run_setup() -> dict[str, Any]:
 
 def setup_differences(a: dict[str, Any], b: dict[str, Any]) -> list[str]:
     """How two runs' recorded setups differ, e.g. ["torch 2.11.0 vs 2.10.0", "cpu ..."];
-    what either run did not record is not counted as a difference."""
+    what either run did not record is not counted as a difference. A resumed run's
+    ``earlier_setups`` count too: every one of a's against every one of b's."""
+    found: list[str] = []
+    for x in _setups(a):
+        for y in _setups(b):
+            found += [d for d in _differences(x, y) if d not in found]
+    return found
+
+
+def _setups(config: dict[str, Any]) -> list[dict[str, Any]]:
+    earlier = config.get("earlier_setups")
+    return [*(s for s in earlier if isinstance(s, dict)), config] if isinstance(
+        earlier, list) else [config]
+
+
+def _differences(a: dict[str, Any], b: dict[str, Any]) -> list[str]:
     found = []
     sa, sb = a.get("software") or {}, b.get("software") or {}
     for key in sorted(set(sa) & set(sb)):
