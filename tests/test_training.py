@@ -174,7 +174,8 @@ def test_a_signal_in_the_loop_saves_and_resumes(dataset: Path, tiny: Path, tmp_p
     assert done.step == 5 and done.pretrained_dir == tmp_path / "r" / "pretrained_model"
 
 
-def test_resume_continues_exactly(dataset: Path, tiny: Path, tmp_path: Path) -> None:
+def test_resume_continues_exactly(dataset: Path, tiny: Path, tmp_path: Path,
+                                  capsys: pytest.CaptureFixture[str]) -> None:
     # a fixed thread count: the adaptive one may cut steps into parts if the machine is busy
     fixed = {"progress": False, "threads": 1}
     straight = train(dataset, tmp_path / "a", preset_name=str(tiny), steps=4,
@@ -185,8 +186,19 @@ def test_resume_continues_exactly(dataset: Path, tiny: Path, tmp_path: Path) -> 
     assert not (tmp_path / "b" / "frame_cache").exists()
     with pytest.raises(TrainError, match="--resume"):
         train(dataset, tmp_path / "b", preset_name=str(tiny), steps=4, **fixed)
+    # as if b's first two steps had run on another torch: the resume says so, records both
+    state_path = tmp_path / "b" / "checkpoints" / "step_0000002" / "training_state.pt"
+    state = torch.load(state_path, weights_only=True)
+    [[first, now]] = state["setup_history"]
+    then = {**now, "software": {**now["software"], "torch": "0.0.1"}}
+    torch.save({**state, "setup_history": [[first, then]]}, state_path)
+    capsys.readouterr()
     resumed = train(dataset, tmp_path / "b", preset_name=str(tiny), steps=4, resume=True,
                     **fixed)
+    assert (f"resuming at step 2 on another setup (torch 0.0.1 vs {now['software']['torch']}, "
+            "then vs now)") in capsys.readouterr().out
+    assert json.loads((resumed.pretrained_dir / "so101_sim_train.json").read_text())[
+        "setup_history"] == [[0, then], [2, now]]
     assert straight.step == resumed.step == 4
     a, b = _weights(straight.pretrained_dir), _weights(resumed.pretrained_dir)
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
@@ -196,6 +208,7 @@ def test_resume_continues_exactly(dataset: Path, tiny: Path, tmp_path: Path) -> 
     assert [r["loss"] for r in log_a] == [r["loss"] for r in log_b]
     info = json.loads((straight.pretrained_dir / "so101_sim_train.json").read_text())
     assert info["dataset_image_size"] == list(SMALL) and info["policy_image_size"] == [24, 32]
+    assert info["setup_history"] == [[0, now]]  # one setup all along
     assert info["weights"] == "EMA" and info["step"] == 4
     # the same command again on the finished run: nothing trained, nothing saved over (it
     # used to save step 4 again with a NaN loss); without --steps a resume keeps the run's

@@ -20,6 +20,7 @@ import torch
 from so101_sim.train.checkpoint import TRAIN_INFO, read_train_info
 from so101_sim.train.presets import Preset
 from so101_sim.utils.atomic import write_text_atomic
+from so101_sim.utils.versions import setup_differences
 
 
 class TrainError(RuntimeError):
@@ -168,3 +169,14 @@ def resumed_sizes(last: Path, steps: int | None, batch_size: int | None,
         raise TrainError(f"--steps {steps}: {out} is already at step {done}; give more total "
                          "steps to continue it, or leave --steps out to finish its own")
     return steps, batch_size
+
+
+def joined_setups(history: Any, step: int, setup: dict[str, Any]
+                  ) -> tuple[list[list[Any]], list[str]]:
+    """The run's ``[first step, setup]`` stretches with `setup` from `step` on, and how it
+    differs from the last one (``utils.versions.setup_differences``; [] when it does not):
+    a resume on other software or another CPU is not bitwise the uninterrupted run."""
+    kept = [h for h in history if isinstance(h, list) and len(h) == 2
+            and isinstance(h[1], dict)] if isinstance(history, list) else []
+    differ = setup_differences(kept[-1][1], setup) if kept else []
+    return (kept if kept and not differ else [*kept, [step, setup]]), differ

@@ -55,6 +55,7 @@ from so101_sim.train.state import (
     check_same_dataset,
     copy_policy,
     discard_partial_checkpoint,
+    joined_setups,
     list_checkpoints,
     load_training_state,
     own_info,
@@ -66,6 +67,7 @@ from so101_sim.train.threads import AdaptiveThreads, BatchParts
 from so101_sim.utils.devices import resolve_device, resolve_precision, slow_bf16_note
 from so101_sim.utils.locks import hold_folder, lock_scope
 from so101_sim.utils.paths import foreign_folder
+from so101_sim.utils.versions import run_setup
 
 #: Training precision: fp32, or bf16 autocast (AMX/AVX512-BF16 CPUs: 1.45x faster per step;
 #: slower on an H200); weights, optimiser and EMA stay fp32. "auto": see devices.py.
@@ -189,6 +191,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                    inv_gamma=ts.ema_inv_gamma, power=ts.ema_power)
     step, wall_before = 0, 0.0
     precision_history = [[0, precision]]  # [first step, precision] per stretch of the run
+    setup_history, _ = joined_setups(None, 0, run_setup())  # and [first step, setup]
     log_path = out / "train_log.jsonl"
     if existing and resume:
         state = load_training_state(existing[-1] / "training_state.pt", device)
@@ -223,6 +226,11 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                   f"{step}; so101_sim_train.json and the model card record both")
             history = [*history, [step, precision]]
         precision_history = history
+        setup_history, differ = joined_setups(state.get("setup_history"), step, run_setup())
+        if differ:
+            print(f"so101-sim train: resuming at step {step} on another setup "
+                  f"({'; '.join(differ)}, then vs now): the steps from here are not bitwise "
+                  "those of an uninterrupted run; so101_sim_train.json records both")
         if state["steps"] != steps:
             print(f"so101-sim train: total steps changed {state['steps']} -> {steps}; the cosine "
                   "schedule is stretched from here on")
@@ -252,7 +260,8 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             "policy_type": cfg.type, "weights": "EMA", "init_from": started_from,
             "augment": preset.augment, "oversample_closes": weighting and asdict(weighting),
             "batch_size": batch_size, "precision": precision,
-            "precision_history": precision_history, "total_steps": steps, "device": device,
+            "precision_history": precision_history, "setup_history": setup_history,
+            "total_steps": steps, "device": device,
             "train_settings": asdict(ts)}
 
     stop = {"signal": None}
@@ -277,6 +286,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                            else {}),
                         "step": at_step, "steps": steps, "wall_s": wall,
                         "preset": preset.name, "precision_history": precision_history,
+                        "setup_history": setup_history,
                         "init_from": started_from, "oversample_closes": oversample_closes,
                         "preset_arch": architecture(preset),
                         "dataset": str(Path(dataset_dir).resolve())}, ck / "training_state.tmp")
