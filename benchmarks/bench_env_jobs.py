@@ -44,6 +44,21 @@ def _actions(n: int, fps: float) -> list[Any]:
     return out
 
 
+class Stepper:
+    """Steps `env` through `actions` in a loop; a new seed at each episode end (or every
+    EPISODE_LEN steps), so a long timing run keeps its scene and contacts realistic."""
+
+    def __init__(self, env: Any, actions: list[Any]) -> None:
+        self.env, self.actions, self.seed, self.k = env, actions, 0, 0
+
+    def __call__(self) -> None:
+        _, _, terminated, truncated, _ = self.env.step(self.actions[self.k])
+        self.k += 1
+        if terminated or truncated or self.k >= EPISODE_LEN:
+            self.seed, self.k = self.seed + 1, 0
+            self.env.reset(seed=self.seed)
+
+
 def _gl_strings() -> dict[str, str]:
     """GL_RENDERER / GL_VERSION of the context current in this thread (empty if unavailable)."""
     try:
@@ -81,16 +96,8 @@ def job_env(job: dict[str, Any]) -> dict[str, Any]:
     build_s = time.perf_counter() - t_build
     actions = _actions(EPISODE_LEN, float(base.task.fps))
 
-    seed, k = 0, 0
-    env.reset(seed=seed)
-
-    def step() -> None:
-        nonlocal seed, k
-        _, _, terminated, truncated, _ = env.step(actions[k])
-        k += 1
-        if terminated or truncated or k >= EPISODE_LEN:
-            seed, k = seed + 1, 0
-            env.reset(seed=seed)
+    step = Stepper(env, actions)
+    env.reset(seed=0)
 
     for _ in range(job["warmup"]):
         step()
@@ -104,7 +111,7 @@ def job_env(job: dict[str, Any]) -> dict[str, Any]:
     wall = time.perf_counter() - t0
     cpu = time.process_time() - c0
     res = {"steps": n, "wall": wall, "cpu": cpu, "physics": base.time_physics,
-           "render": base.time_render, "build_s": build_s, "resets": seed, **gl}
+           "render": base.time_render, "build_s": build_s, "resets": step.seed, **gl}
     env.close()
     return res
 
@@ -223,17 +230,9 @@ def job_their_env(job: dict[str, Any]) -> dict[str, Any]:
         actions.append(np.asarray([0.005 * math.sin(t), 0.005 * math.cos(t),
                                    0.003 * math.sin(0.7 * t), 0.5 + 0.5 * math.sin(t)],
                                   dtype=np.float32))
-    seed, k = 0, 0
-    obs, _ = env.reset(seed=seed)
+    step = Stepper(env, actions)
+    obs, _ = env.reset(seed=0)
     shape = tuple(obs["pixels"]["front"].shape)
-
-    def step() -> None:
-        nonlocal seed, k
-        _, _, terminated, truncated, _ = env.step(actions[k])
-        k += 1
-        if terminated or truncated or k >= EPISODE_LEN:
-            seed, k = seed + 1, 0
-            env.reset(seed=seed)
 
     for _ in range(job["warmup"]):
         step()
