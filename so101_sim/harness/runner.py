@@ -145,8 +145,8 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
     setup = run_setup()  # episodes finished with another one get a note (actions differ)
     done = {s: r for s, r in run.prepare(identity, resume, may_grow=grow, setup=setup).items()
             if seed_start <= s < seed_start + episodes}
-    if run.setup_note():
-        log(run.setup_note())
+    if note := run.setup_note():
+        log(note)
     if sink is not None:
         done = _open_rollouts(sink, resume, done, save_rollouts, log)
     todo = deque(s for s in range(seed_start, seed_start + episodes) if s not in done)

@@ -191,7 +191,8 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                    inv_gamma=ts.ema_inv_gamma, power=ts.ema_power)
     step, wall_before = 0, 0.0
     precision_history = [[0, precision]]  # [first step, precision] per stretch of the run
-    setup_history, _ = joined_setups(None, 0, run_setup())  # and [first step, setup]
+    setup = run_setup()  # software and CPU: a resume on others is not bitwise this run
+    setup_history, _ = joined_setups(None, 0, setup)  # and [first step, setup]
     log_path = out / "train_log.jsonl"
     if existing and resume:
         state = load_training_state(existing[-1] / "training_state.pt", device)
@@ -226,7 +227,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
                   f"{step}; so101_sim_train.json and the model card record both")
             history = [*history, [step, precision]]
         precision_history = history
-        setup_history, differ = joined_setups(state.get("setup_history"), step, run_setup())
+        setup_history, differ = joined_setups(state.get("setup_history"), step, setup)
         if differ:
             print(f"so101-sim train: resuming at step {step} on another setup "
                   f"({'; '.join(differ)}, then vs now): the steps from here are not bitwise "
