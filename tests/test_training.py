@@ -296,6 +296,10 @@ def test_checkpoint_loads_through_lerobot(dataset: Path, tiny: Path, tmp_path: P
     with torch.no_grad():
         action = post(policy.select_action(pre(obs)))
     assert action.shape == (1, 6) and torch.isfinite(action).all()
+    # what the demos were of, for eval's and curve's default --task (tests/test_trained_on.py)
+    info = json.loads((r.pretrained_dir / "so101_sim_train.json").read_text())
+    assert info["dataset_task"] == "pick_place"
+    assert info["dataset_task_texts"] == ["Pick up the red cube and place it on the green target."]
     # the EMA weights differ from the raw ones after training
     # the training state holds tensors and plain values only: it loads without unpickling code
     raw = torch.load(next((tmp_path / "run" / "checkpoints").glob("*/training_state.pt")),

@@ -128,6 +128,10 @@ def resolve_eval_flags(args: argparse.Namespace) -> None:
             raise ValueError(f"{', '.join(given)} given without --against: "
                              "they set the sequential test of `--against RUN`; add --against "
                              "RUN (an earlier eval's --out folder) or drop them")
+        if args.task is None:
+            from so101_sim.harness.trained_on import default_task
+
+            args.task = default_task(args.policy, EVAL_DEFAULTS["task"])
         for key, value in EVAL_DEFAULTS.items():
             if getattr(args, key) is None:
                 setattr(args, key, value)
@@ -163,6 +167,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
     suite = "," in args.task or args.task == "all"  # one table over several tasks
     try:
         checkpoint = _checkpoint_dir(args)
+        if checkpoint is not None and not suite:
+            from so101_sim.harness.trained_on import unseen_task_note
+
+            note = unseen_task_note(checkpoint, args.task)
+            if note:
+                print(note)
         if args.backend == "local" and checkpoint is not None:
             from so101_sim.harness.warmup import start_self_check, warm_eval_workers
 
@@ -231,6 +241,12 @@ def cmd_curve(args: argparse.Namespace) -> int:
     from so101_sim.harness.curve import curve_variant, evaluate_curve, plot_curve
 
     run = Path(args.run)
+    if args.task is None:  # the task of the run's demos, as eval's default
+        from so101_sim.harness.curve import DEFAULT_TASK, run_checkpoints
+        from so101_sim.harness.trained_on import default_task
+
+        saved = run_checkpoints(run) if run.is_dir() else []
+        args.task = default_task(str(saved[-1][1]), DEFAULT_TASK) if saved else DEFAULT_TASK
     options = ({"temporal_ensemble_coeff": args.temporal_ensemble}
                if args.temporal_ensemble is not None else None)
     try:

@@ -245,8 +245,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="first evaluation seed (default 100000)")
     cu.add_argument("--steps", default=None, type=parse_steps,
                     help="only these checkpoint steps, comma-separated (e.g. 8000,12000)")
-    cu.add_argument("--task", default="pick_place",
-                    help="task to evaluate on (a multi-task run has one curve per task)")
+    cu.add_argument("--task", default=None, help="task to evaluate on (default its demos', "
+                    "else pick_place; a multi-task run has one curve per task)")
     cu.add_argument("--temporal-ensemble", type=parse_ensemble_coeff, default=None,
                     metavar="COEFF", help="evaluate with temporal ensembling (as `eval "
                     "--temporal-ensemble`); a separate curve from the checkpoints' own setting")
@@ -282,9 +282,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "must be ones lerobot registers) or 'package.module:factory', which "
                          "IMPORTS AND RUNS that Python code: use it only for your own code")
     ev.add_argument("--task", default=None,
-                    help="task name in envs/ or a .toml path (default pick_place; with "
-                         "--against, RUN's task); several as a,b,c or 'all' (one folder per "
-                         "task under --out, one table, eval_info.json grouped per task)")
+                    help="task name in envs/ or a .toml path (default: the checkpoint's demos', "
+                         "else pick_place; with --against, RUN's); several as a,b,c or 'all' "
+                         "(one folder per task under --out, one table, eval_info.json per task)")
     ev.add_argument("--episodes", type=positive_int, default=None,
                     help="seeds to run (default 50; with --against, RUN's)")
     ev.add_argument("--n-envs", type=positive_int, default=16,

@@ -125,7 +125,8 @@ def model_card(train_info: dict, evals: dict | list[dict] | None, curve: list[di
     per task the checkpoint answers for)."""
     t = train_info
     evals = [evals] if isinstance(evals, dict) else list(evals or [])
-    tasks = [e["config"]["task"] for e in evals] or [DEFAULT_TASK]
+    tasks = [e["config"]["task"] for e in evals] or [Path(t.get("dataset_task")
+                                                          or DEFAULT_TASK).stem]
     title, cls = POLICY_NAMES.get(t.get("policy_type", "diffusion"),
                                   (t.get("policy_type"), "policy"))
     lines = [

@@ -19,6 +19,9 @@ from so101_sim.utils.trust import check_processor_files
 
 #: The sidecar ``train`` writes beside each checkpoint's weights.
 TRAIN_INFO = "so101_sim_train.json"
+#: Its keys for what the demos were of: the recording's task (a name, or a .toml path; null for
+#: a dataset ``record`` did not write, e.g. a merge of several) and every task text in them.
+TASK_KEY, TEXTS_KEY = "dataset_task", "dataset_task_texts"
 
 
 def check_files(path: Path) -> None:
@@ -93,6 +96,13 @@ def train_image_size(path: Path) -> tuple[int, int] | None:
         raise ValueError(f"{f} is invalid ({exc!r}); expected "
                          '{"dataset_image_size": [height, width]}') from exc
     return h, w
+
+
+def demo_tasks(dataset_sidecar: dict[str, Any], task_texts: Any) -> dict[str, Any]:
+    """The two task keys ``train`` writes, from the dataset's sidecar and lerobot's task index
+    (``meta.tasks.index``)."""
+    return {TASK_KEY: dataset_sidecar.get("task"),
+            TEXTS_KEY: sorted(str(t) for t in task_texts)}
 
 
 def checkpoint_name(path: Path) -> str:

@@ -1,0 +1,103 @@
+"""eval's and curve's default task is the one the checkpoint's demos were of; a task the demos
+never showed gets one line. The sidecar is what `train` writes (tests/test_training.py checks
+that it writes these keys)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from so101_sim.cli.commands import cmd_curve, resolve_eval_flags
+from so101_sim.cli.parser import build_parser
+from so101_sim.harness.trained_on import default_task, unseen_task_note
+from so101_sim.tasks import load_task
+from so101_sim.train.checkpoint import TRAIN_INFO
+
+STACK = load_task("stack").description
+
+
+def checkpoint(root: Path, **info: object) -> Path:
+    root.mkdir(parents=True)
+    (root / TRAIN_INFO).write_text(json.dumps({"step": 2, **info}))
+    return root
+
+
+def eval_args(*argv: str):
+    return build_parser().parse_args(["eval", *argv])
+
+
+def test_eval_defaults_to_the_task_of_the_demos(tmp_path: Path, capsys) -> None:
+    ck = checkpoint(tmp_path / "ck", dataset_task="stack", dataset_task_texts=[STACK])
+    args = eval_args("--policy", str(ck))
+    resolve_eval_flags(args)
+    assert args.task == "stack"
+    assert f"task: stack, the task of the demos {ck} was trained on" in capsys.readouterr().out
+    chosen = eval_args("--policy", str(ck), "--task", "lift")
+    resolve_eval_flags(chosen)
+    assert chosen.task == "lift" and capsys.readouterr().out == ""
+
+
+def test_a_checkpoint_without_the_keys_keeps_pick_place(tmp_path: Path, capsys) -> None:
+    for policy in (str(checkpoint(tmp_path / "old", preset="cpu")), "expert",
+                   str(tmp_path / "missing")):
+        args = eval_args("--policy", policy)
+        resolve_eval_flags(args)
+        assert args.task == "pick_place"
+    assert capsys.readouterr().out == ""
+    assert unseen_task_note(tmp_path / "old", "stack") is None
+
+
+def test_a_task_file_that_is_not_here_falls_back_with_a_note(tmp_path: Path, capsys) -> None:
+    ck = checkpoint(tmp_path / "ck", dataset_task="/elsewhere/my_task.toml")
+    assert default_task(str(ck), "pick_place") == "pick_place"
+    out = capsys.readouterr().out
+    assert "'/elsewhere/my_task.toml', which does not load here" in out
+    assert "using the default task" in out
+
+
+def test_a_task_the_demos_never_showed_gets_one_line(tmp_path: Path) -> None:
+    ck = checkpoint(tmp_path / "ck", dataset_task="stack", dataset_task_texts=[STACK])
+    assert unseen_task_note(ck, "stack") is None
+    note = unseen_task_note(ck, "pick_place")
+    assert note.startswith(f"note: pick_place ({load_task('pick_place').description!r}) is "
+                           f"not a task {ck} was trained on (its demos: {STACK!r})")
+    # the pick_place variants share pick_place's text: the same instruction, no note
+    pp = checkpoint(tmp_path / "pp", dataset_task="pick_place",
+                    dataset_task_texts=[load_task("pick_place").description])
+    assert unseen_task_note(pp, "pick_place_dr") is None
+
+
+def test_curve_defaults_to_the_task_of_the_run(tmp_path: Path, monkeypatch, capsys) -> None:
+    run = tmp_path / "run"
+    for step in (2, 4):
+        ck = checkpoint(run / "checkpoints" / f"step_{step:07d}" / "pretrained_model",
+                        dataset_task="lift")
+        (ck / "model.safetensors").write_bytes(b"")
+    seen = {}
+
+    def fake_curve(run, **kw):
+        seen["task"] = kw["task"]
+        raise SystemExit(0)
+
+    import so101_sim.harness.curve as curve
+
+    monkeypatch.setattr(curve, "evaluate_curve", fake_curve)
+    with pytest.raises(SystemExit):
+        cmd_curve(build_parser().parse_args(["curve", str(run)]))
+    assert seen["task"] == "lift" and "task: lift, the task of the demos" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        cmd_curve(build_parser().parse_args(["curve", str(run), "--task", "stack"]))
+    assert seen["task"] == "stack"
+
+
+def test_an_unmeasured_card_names_the_task_of_the_demos() -> None:
+    from so101_sim.harness.export import model_card
+
+    shipped = Path(__file__).parent.parent / "policy" / "pick_place_diffusion" / TRAIN_INFO
+    info = json.loads(shipped.read_text())
+    assert model_card(info, None, [], "cpu").startswith(
+        "# pick_place_diffusion: Diffusion Policy for so101_sim/PickPlace-v0, task pick_place\n")
+    card = model_card({**info, "dataset_task": "lift"}, None, [], "cpu", name="lift_run")
+    assert card.startswith("# lift_run: Diffusion Policy for so101_sim/PickPlace-v0, task lift\n")
