@@ -46,7 +46,7 @@ def test_a_checkpoint_without_the_keys_keeps_pick_place(tmp_path: Path, capsys) 
         resolve_eval_flags(args)
         assert args.task == "pick_place"
     assert capsys.readouterr().out == ""
-    assert unseen_task_note(tmp_path / "old", "stack") is None
+    assert unseen_task_note(tmp_path / "old", ["stack"]) is None
 
 
 def test_a_task_file_that_is_not_here_falls_back_with_a_note(tmp_path: Path, capsys) -> None:
@@ -59,14 +59,17 @@ def test_a_task_file_that_is_not_here_falls_back_with_a_note(tmp_path: Path, cap
 
 def test_a_task_the_demos_never_showed_gets_one_line(tmp_path: Path) -> None:
     ck = checkpoint(tmp_path / "ck", dataset_task="stack", dataset_task_texts=[STACK])
-    assert unseen_task_note(ck, "stack") is None
-    note = unseen_task_note(ck, "pick_place")
+    assert unseen_task_note(ck, ["stack"]) is None
+    note = unseen_task_note(ck, ["pick_place"])
     assert note.startswith(f"note: pick_place ({load_task('pick_place').description!r}) is "
                            f"not a task {ck} was trained on (its demos: {STACK!r})")
     # the pick_place variants share pick_place's text: the same instruction, no note
     pp = checkpoint(tmp_path / "pp", dataset_task="pick_place",
                     dataset_task_texts=[load_task("pick_place").description])
-    assert unseen_task_note(pp, "pick_place_dr") is None
+    assert unseen_task_note(pp, ["pick_place_dr", "pick_place_anywhere"]) is None
+    # several tasks (eval --task a,b): one line naming those the demos never showed
+    note = unseen_task_note(pp, ["lift", "pick_place", "stack"])
+    assert note.startswith(f"note: lift, stack are not tasks {pp} was trained on (its demos: ")
 
 
 def test_curve_defaults_to_the_task_of_the_run(tmp_path: Path, monkeypatch, capsys) -> None:

@@ -167,10 +167,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     suite = "," in args.task or args.task == "all"  # one table over several tasks
     try:
         checkpoint = _checkpoint_dir(args)
-        if checkpoint is not None and not suite:
+        if checkpoint is not None:
+            from so101_sim.harness.suite import task_list
             from so101_sim.harness.trained_on import unseen_task_note
 
-            note = unseen_task_note(checkpoint, args.task)
+            note = unseen_task_note(checkpoint, task_list(args.task) if suite else [args.task])
             if note:
                 print(note)
         if args.backend == "local" and checkpoint is not None:

@@ -8,6 +8,7 @@ trainers) keep the plain default and get no note.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -46,14 +47,18 @@ def default_task(policy: str, fallback: str) -> str:
     return task
 
 
-def unseen_task_note(checkpoint: str | Path, task: str | Path) -> str | None:
-    """One line when `task`'s text is not among those of the checkpoint's demos, else None."""
+def unseen_task_note(checkpoint: str | Path, tasks: Sequence[str | Path]) -> str | None:
+    """One line naming the `tasks` whose text is not among those of the checkpoint's demos
+    (None if every one is, or the checkpoint does not say)."""
     texts = _info(checkpoint).get(TEXTS_KEY)
     if not isinstance(texts, list) or not texts:
         return None
-    spec = load_task(task)
-    if spec.description in texts:
+    unseen = [spec for spec in map(load_task, tasks) if spec.description not in texts]
+    if not unseen:
         return None
     shown = "; ".join(repr(t) for t in texts[:3]) + ("; ..." if len(texts) > 3 else "")
-    return (f"note: {spec.name} ({spec.description!r}) is not a task {checkpoint} was trained "
-            f"on (its demos: {shown}); expect a low rate, or pass the --task it learned")
+    which = (f"{unseen[0].name} ({unseen[0].description!r})" if len(unseen) == 1
+             else ", ".join(s.name for s in unseen))
+    return (f"note: {which} {'is not a task' if len(unseen) == 1 else 'are not tasks'} "
+            f"{checkpoint} was trained on (its demos: {shown}); expect a low rate"
+            f"{'' if len(unseen) == 1 else ' there'}, or pass the --task it learned")
