@@ -186,6 +186,25 @@ def test_training_reads_the_rollout_dataset(runs):
     assert demos.action.shape == (len(ds), 6)
 
 
+def test_a_policy_trained_on_rollouts_is_not_measured_on_their_seeds(runs, capsys):
+    """Rollouts are on evaluation seeds: train records them and says so, and eval refuses to
+    measure the trained policy on them unless asked to (tests/test_trained_on.py: the rules)."""
+    from tiny_presets import tiny_preset
+
+    from so101_sim.train import read_train_info, train
+
+    root, base = runs["base"] / "ds", runs["base"]
+    r = train(root, base / "run", preset_name=str(tiny_preset(base)), steps=1, progress=False)
+    info = read_train_info(r.pretrained_dir)
+    assert info["dataset_eval_seeds"] == [[100000, 100002]] and info["dataset_task"] == "pick_place"
+    assert f"{root} holds episodes on evaluation seeds (100000..100002)" in capsys.readouterr().out
+    with pytest.raises(ValueError, match=r"seeds 100001\.\.100002 of pick_place are among the "
+                                         r"policy's training episodes .*--seed-start 100003"):
+        evaluate(str(r.pretrained_dir), episodes=4, seed_start=100001, out_dir=base / "e",
+                 **_quiet())
+    assert not (base / "e").exists()  # refused before anything ran
+
+
 def test_outcomes_do_not_depend_on_save_rollouts(runs):
     assert _outcomes(runs["saved"]) == _outcomes(runs["plain"])
     assert runs["saved"]["config"]["save_rollouts"] == str((runs["base"] / "ds").resolve())

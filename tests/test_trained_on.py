@@ -104,3 +104,40 @@ def test_an_unmeasured_card_names_the_task_of_the_demos() -> None:
         "# pick_place_diffusion: Diffusion Policy for so101_sim/PickPlace-v0, task pick_place\n")
     card = model_card({**info, "dataset_task": "lift"}, None, [], "cpu", name="lift_run")
     assert card.startswith("# lift_run: Diffusion Policy for so101_sim/PickPlace-v0, task lift\n")
+
+
+def test_train_records_the_evaluation_seeds_among_its_demos(tmp_path: Path) -> None:
+    from so101_sim.train.checkpoint import demos_info, eval_seeds_note
+
+    info = demos_info({"task": "lift"}, ["b", "a"],
+                      [3, 100003, 0, 100000, 100001, 100009, 100010, 100012])
+    assert info == {"dataset_task": "lift", "dataset_task_texts": ["a", "b"],
+                    "dataset_eval_seeds": [[100000, 100001], [100003, 100003],
+                                           [100009, 100010], [100012, 100012]]}
+    assert eval_seeds_note(tmp_path, info) == (
+        f"so101-sim train: note: {tmp_path} holds episodes on evaluation seeds (100000..100001, "
+        "100003, 100009..100010, 100012), e.g. rollouts of `eval --save-rollouts`; eval will "
+        "refuse to measure this policy on them (its own training episodes): evaluate it with "
+        "--seed-start above 100012")
+    recorded = demos_info({}, [], list(range(50)))  # record's demos: training seeds only
+    assert recorded["dataset_eval_seeds"] == [] and eval_seeds_note(tmp_path, recorded) is None
+    assert demos_info({}, [], None)["dataset_eval_seeds"] == []  # a dataset without seeds
+
+
+def test_eval_refuses_the_seeds_of_its_own_training_rollouts() -> None:
+    from so101_sim.harness.trained_on import check_unseen_seeds
+
+    lift, stack = load_task("lift"), load_task("stack")
+    demos = {"dataset_task": "lift", "dataset_eval_seeds": [[100000, 100049]]}
+    with pytest.raises(ValueError, match=r"seeds 100040\.\.100049 of lift are among the "
+                                         r"policy's training episodes .*--seed-start 100050\)"):
+        check_unseen_seeds(demos, lift, range(100040, 100090), False)
+    check_unseen_seeds(demos, lift, range(100050, 100090), False)  # later seeds: fine
+    check_unseen_seeds(demos, lift, range(100000, 100010), True)  # --allow-train-seeds
+    check_unseen_seeds(demos, stack, range(100000, 100010), False)  # another task's scenes
+    merged = {"dataset_task": None, "dataset_eval_seeds": [[100000, 100000]]}  # task unknown
+    with pytest.raises(ValueError, match="seed 100000 of stack is among"):
+        check_unseen_seeds(merged, stack, range(100000, 100010), False)
+    with pytest.raises(ValueError, match=r"dataset_eval_seeds=\[100000\] .* is invalid"):
+        check_unseen_seeds({"dataset_eval_seeds": [100000]}, stack, range(100000, 100001), False)
+    check_unseen_seeds({}, stack, range(100000, 100001), False)  # a checkpoint that does not say

@@ -205,7 +205,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
             evaluate_against(policy, args.against, task=args.task,
                              margin=args.margin, indifference=args.indifference,
-                             alpha=args.alpha, max_episodes=args.max_episodes, **common)
+                             alpha=args.alpha, max_episodes=args.max_episodes, **common,
+                             **({"allow_train_seeds": True} if args.allow_train_seeds else {}))
             return 0
         evaluate(policy, task=args.task, episodes=args.episodes, seed_start=args.seed_start,
                  allow_train_seeds=args.allow_train_seeds, **common)

@@ -291,11 +291,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="env workers (default 16: two policy forwards of 8, so one half steps "
                          "while the policy runs the other's): processes, or Ray actors with "
                          "--backend ray; results per seed depend on neither")
-    ev.add_argument("--seed-start", type=nonnegative_int, default=None,
-                    help="first seed (default 100000; training seeds are below it; with "
-                         "--against, RUN's)")
+    ev.add_argument("--seed-start", type=nonnegative_int, default=None, help="first seed "
+                    "(default 100000; training seeds are below it; with --against, RUN's)")
     ev.add_argument("--allow-train-seeds", action="store_true",
-                    help="allow --seed-start below 100000 (measuring on training seeds)")
+                    help="measure on training seeds on purpose: --seed-start below 100000, "
+                         "or seeds of rollouts the checkpoint was trained on")
     ev.add_argument("--out", default=None,
                     help="output folder (default outputs/eval/<policy>-<task>-<time>)")
     ev.add_argument("--videos", type=nonnegative_int, default=2,

@@ -39,6 +39,7 @@ from so101_sim.harness.results import (
     per_episode,
     summary_line,
 )
+from so101_sim.harness.trained_on import check_unseen_seeds
 from so101_sim.harness.warmup import worker_preload
 from so101_sim.tasks import TaskSpec, load_task, task_ref
 from so101_sim.utils.devices import eval_policy_threads, torch_threads, workers_that_fit
@@ -98,6 +99,8 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
     _check_args(episodes, n_envs, seed_start, videos, allow_train_seeds)
     check_backend(backend, ray_address)
     info = policy.info
+    check_unseen_seeds(info.demos, spec, range(seed_start, seed_start + episodes),
+                       allow_train_seeds)
     if info.cameras and not faithful and not image_size:
         from so101_sim.sim.rendering import select_gl_backend
 

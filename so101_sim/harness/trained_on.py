@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from so101_sim.tasks import TaskSpecError, load_task
-from so101_sim.train.checkpoint import TASK_KEY, TEXTS_KEY, read_train_info
+from so101_sim.train.checkpoint import SEEDS_KEY, TASK_KEY, TEXTS_KEY, read_train_info
 
 
 def _info(checkpoint: str | Path) -> dict[str, Any]:
@@ -62,3 +62,34 @@ def unseen_task_note(checkpoint: str | Path, tasks: Sequence[str | Path]) -> str
     return (f"note: {which} {'is not a task' if len(unseen) == 1 else 'are not tasks'} "
             f"{checkpoint} was trained on (its demos: {shown}); expect a low rate"
             f"{'' if len(unseen) == 1 else ' there'}, or pass the --task it learned")
+
+
+def check_unseen_seeds(demos: dict[str, Any], task: Any, seeds: range,
+                       allow_train_seeds: bool) -> None:
+    """Refuse to measure a policy on evaluation seeds its demos hold for this task (rollouts
+    of ``eval --save-rollouts`` it was trained on), unless `allow_train_seeds`."""
+    ranges, own = demos.get(SEEDS_KEY) or [], demos.get(TASK_KEY)
+    if allow_train_seeds or not ranges:
+        return
+    try:
+        spans = [(int(lo), int(hi)) for lo, hi in ranges]
+    except (TypeError, ValueError):
+        raise ValueError(f"{SEEDS_KEY}={ranges!r} in the checkpoint's so101_sim_train.json is "
+                         "invalid; expected [[first, last], ...]: re-export the checkpoint"
+                         ) from None
+    try:
+        if own is not None and load_task(own).name != task.name:
+            return  # another task's episodes on those seeds: other scenes
+    except TaskSpecError:
+        pass  # a task file that is not here: assume the same task
+    seen = [s for s in seeds if any(lo <= s <= hi for lo, hi in spans)]
+    if seen:
+        from so101_sim.harness.compare import seed_ranges
+
+        raise ValueError(
+            f"{'seed' if len(seen) == 1 else 'seeds'} {seed_ranges(seen)} of {task.name} "
+            f"{'is' if len(seen) == 1 else 'are'} among the policy's training "
+            f"episodes ({SEEDS_KEY} in its so101_sim_train.json: rollouts it was trained on), "
+            f"so the rate would measure its training data; evaluate on later seeds "
+            f"(--seed-start {max(hi for _, hi in spans) + 1}); eval's --allow-train-seeds "
+            "measures on them on purpose")

@@ -14,14 +14,17 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+from so101_sim.dataset.schema import EVAL_SEED_START
 from so101_sim.train.widen import widen_conditioning, widen_keypoints
 from so101_sim.utils.trust import check_processor_files
 
 #: The sidecar ``train`` writes beside each checkpoint's weights.
 TRAIN_INFO = "so101_sim_train.json"
 #: Its keys for what the demos were of: the recording's task (a name, or a .toml path; null for
-#: a dataset ``record`` did not write, e.g. a merge of several) and every task text in them.
-TASK_KEY, TEXTS_KEY = "dataset_task", "dataset_task_texts"
+#: a dataset ``record`` did not write, e.g. a merge of several), every task text in them, and
+#: the evaluation seeds among theirs as [first, last] ranges (rollouts of ``eval
+#: --save-rollouts``: the harness will not measure the policy on its own training episodes).
+TASK_KEY, TEXTS_KEY, SEEDS_KEY = "dataset_task", "dataset_task_texts", "dataset_eval_seeds"
 
 
 def check_files(path: Path) -> None:
@@ -98,11 +101,37 @@ def train_image_size(path: Path) -> tuple[int, int] | None:
     return h, w
 
 
-def demo_tasks(dataset_sidecar: dict[str, Any], task_texts: Any) -> dict[str, Any]:
-    """The two task keys ``train`` writes, from the dataset's sidecar and lerobot's task index
-    (``meta.tasks.index``)."""
+def demos_info(dataset_sidecar: dict[str, Any], task_texts: Any,
+               seeds: list[int] | None) -> dict[str, Any]:
+    """The keys above for a dataset: its sidecar, lerobot's task index (``meta.tasks.index``)
+    and its episodes' seeds (None for a dataset without ``episode_seed``)."""
+    ranges: list[list[int]] = []
+    for s in sorted(s for s in seeds or () if s >= EVAL_SEED_START):
+        if ranges and s <= ranges[-1][1] + 1:
+            ranges[-1][1] = s
+        else:
+            ranges.append([s, s])
     return {TASK_KEY: dataset_sidecar.get("task"),
-            TEXTS_KEY: sorted(str(t) for t in task_texts)}
+            TEXTS_KEY: sorted(str(t) for t in task_texts), SEEDS_KEY: ranges}
+
+
+def demos_of(path: str | Path) -> dict[str, Any]:
+    """The keys above from a checkpoint's sidecar ({} for a checkpoint without them)."""
+    info = read_train_info(path) or {}
+    return {k: info[k] for k in (TASK_KEY, TEXTS_KEY, SEEDS_KEY) if k in info}
+
+
+def eval_seeds_note(dataset_dir: Path, info: dict[str, Any]) -> str | None:
+    """One line when the demos include evaluation seeds, else None."""
+    ranges = info.get(SEEDS_KEY) or []
+    if not ranges:
+        return None
+    shown = ", ".join(f"{lo}..{hi}" if hi > lo else f"{lo}" for lo, hi in ranges[:4])
+    more = ", ..." if len(ranges) > 4 else ""
+    return (f"so101-sim train: note: {dataset_dir} holds episodes on evaluation seeds ({shown}"
+            f"{more}), e.g. rollouts of `eval --save-rollouts`; eval will refuse to measure "
+            "this policy on them (its own training episodes): evaluate it with --seed-start "
+            f"above {ranges[-1][1]}")
 
 
 def checkpoint_name(path: Path) -> str:

@@ -35,10 +35,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from so101_sim.dataset.reader import NotADatasetError, open_lerobot_dataset
+from so101_sim.dataset.reader import NotADatasetError, open_lerobot_dataset, stored_seeds
 from so101_sim.dataset.store import read_sidecar
 from so101_sim.train.augment import FrameAugmenter
-from so101_sim.train.checkpoint import demo_tasks, init_weights_from
+from so101_sim.train.checkpoint import demos_info, eval_seeds_note, init_weights_from
 from so101_sim.train.demos import (
     CloseWeighting,
     gather_batch,
@@ -255,7 +255,9 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     info = {"preset": preset.name, "preset_file": str(preset.path), "dataset": str(dataset_dir),
             "dataset_episodes": dataset.meta.total_episodes,
             "dataset_frames": dataset.meta.total_frames,
-            **demo_tasks(read_sidecar(dataset_dir), dataset.meta.tasks.index),
+            **demos_info(read_sidecar(dataset_dir), dataset.meta.tasks.index,
+                         stored_seeds(dataset_dir)
+                         if "episode_seed" in dataset.meta.features else None),
             "dataset_image_size": list(dataset.meta.features[dataset.meta.video_keys[0]]
                                        ["shape"][:2]),
             "policy_image_size": list(preset.image_size),
@@ -267,6 +269,8 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             "total_steps": steps, "device": device,
             "train_settings": asdict(ts)}
 
+    if note := eval_seeds_note(dataset_dir, info):
+        print(note)
     stop = {"signal": None}
 
     def on_signal(signum, _frame):

@@ -52,6 +52,7 @@ from so101_sim.tasks import ALL_CAMERAS as CAMERAS
 from so101_sim.train.checkpoint import (
     check_files,
     checkpoint_name,
+    demos_of,
     load_config,
     load_processors,
     load_weights,
@@ -169,7 +170,7 @@ class LeRobotPolicy:
                                                     if precision != "fp32" else {}),
                                                  **({"camera_map": renamed} if renamed else {})}),
             weights=weights_digest(self.path / "model.safetensors"),
-            details=self._details(), camera_map=renamed)
+            details=self._details(), camera_map=renamed, demos=demos_of(self.path))
 
     # --------------------------------------------------------------------- settings
     def _apply_settings(self, cfg: Any, asked: dict[str, Any]) -> None:

@@ -41,6 +41,7 @@ class PolicyInfo:
     ``details``: shown in the report.
     ``camera_map``: policy camera name -> env camera, for inputs named unlike the env's
     cameras (``--camera-map``); ``cameras`` lists the env cameras, which are what is rendered.
+    ``demos``: what its training demos were, as ``train`` records them (``demos_of``).
     """
 
     name: str
@@ -54,6 +55,7 @@ class PolicyInfo:
     weights: str = ""
     details: dict[str, Any] = field(default_factory=dict)
     camera_map: dict[str, str] = field(default_factory=dict)
+    demos: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         unknown = set(self.cameras) - set(CAMERAS)
