@@ -104,6 +104,10 @@ def test_an_unmeasured_card_names_the_task_of_the_demos() -> None:
         "# pick_place_diffusion: Diffusion Policy for so101_sim/PickPlace-v0, task pick_place\n")
     card = model_card({**info, "dataset_task": "lift"}, None, [], "cpu", name="lift_run")
     assert card.startswith("# lift_run: Diffusion Policy for so101_sim/PickPlace-v0, task lift\n")
+    assert "evaluation seeds in the data" not in card
+    card = model_card({**info, "dataset_eval_seeds": [[100000, 100049]]}, None, [], "cpu")
+    assert ("| evaluation seeds in the data | 100000..100049 (rollouts; eval and export refuse "
+            "to measure it on them) |") in card
 
 
 def test_train_records_the_evaluation_seeds_among_its_demos(tmp_path: Path) -> None:
@@ -141,3 +145,20 @@ def test_eval_refuses_the_seeds_of_its_own_training_rollouts() -> None:
     with pytest.raises(ValueError, match=r"dataset_eval_seeds=\[100000\] .* is invalid"):
         check_unseen_seeds({"dataset_eval_seeds": [100000]}, stack, range(100000, 100001), False)
     check_unseen_seeds({}, stack, range(100000, 100001), False)  # a checkpoint that does not say
+
+
+def test_export_refuses_an_eval_on_the_policys_own_rollout_seeds(tmp_path: Path) -> None:
+    from so101_sim.harness.export import check_measured
+
+    ck = checkpoint(tmp_path / "ck", dataset_task="lift", dataset_eval_seeds=[[100000, 100009]])
+
+    def measured(task: str, *seeds: int) -> list:
+        e = {"config": {"policy_weights": "w", "policy": "ck", "task": task},
+             "per_episode": [{"seed": s} for s in seeds]}
+        return [(tmp_path / "eval_info.json", e)]
+
+    with pytest.raises(ValueError, match=r"eval_info.json cannot go into the card: seeds "
+                                         r"100008\.\.100009 of lift are among"):
+        check_measured(measured("lift", 100008, 100009, 100010), "w", ck, log=print)
+    check_measured(measured("lift", 100010, 100011), "w", ck, log=print)  # held out
+    check_measured(measured("stack", 100000), "w", ck, log=print)  # another task's scenes

@@ -17,7 +17,15 @@ from pathlib import Path
 from so101_sim.harness.curve import DEFAULT_TASK, plot_curve, read_curve, widest_rows
 from so101_sim.harness.policies.checks import ACT_TRAINING_ONLY, weights_digest
 from so101_sim.harness.results import INFO, check_eval_info
-from so101_sim.train.checkpoint import TRAIN_INFO, checkpoint_name, damaged
+from so101_sim.harness.trained_on import check_unseen_seeds
+from so101_sim.tasks import TaskSpecError, load_task
+from so101_sim.train.checkpoint import (
+    TRAIN_INFO,
+    checkpoint_name,
+    damaged,
+    demos_of,
+    ranges_text,
+)
 from so101_sim.utils.locks import folder_lock
 from so101_sim.utils.trust import check_processor_files
 
@@ -141,6 +149,10 @@ def model_card(train_info: dict, evals: dict | list[dict] | None, curve: list[di
         f"| data | {t['dataset_episodes']} expert episodes, {t['dataset_frames']} frames, "
         f"recorded at {t['dataset_image_size'][0]}x{t['dataset_image_size'][1]}, "
         f"training seeds{_recording_note(t['dataset'])} |",
+        *([f"| evaluation seeds in the data | "
+           f"{ranges_text(t['dataset_eval_seeds'])} (rollouts; "
+           "eval and export refuse to measure it on them) |"] if t.get("dataset_eval_seeds")
+          else []),
         f"| policy input | 2 cameras resized to {t['policy_image_size'][0]}x"
         f"{t['policy_image_size'][1]} by {t['image_pipeline']} |",
         f"| steps | {t['step']} of {t['total_steps']} planned, batch {t['batch_size']} |",
@@ -221,6 +233,15 @@ def check_measured(evals: list[tuple[Path, dict]], digest: str, checkpoint: Path
             raise ValueError(f"{path} measured other weights ({e['config']['policy']}, "
                              f"weights {measured}) than {checkpoint} (weights {digest}); "
                              "evaluate this checkpoint or its export and pass that folder")
+        try:  # a card's rate is on held-out seeds, never on rollouts it was trained on
+            task = load_task(e["config"]["task"])
+        except TaskSpecError:
+            continue  # a task file from elsewhere: its scenes are not known here
+        try:
+            check_unseen_seeds(demos_of(checkpoint), task,
+                               [p["seed"] for p in e["per_episode"]], False)
+        except ValueError as exc:
+            raise ValueError(f"{path} cannot go into the card: {exc}") from None
 
 
 def check_dest(dest: Path, digest: str, replace: bool) -> None:
@@ -309,7 +330,7 @@ def export_policy(checkpoint: Path, dest: Path,
 def _export(checkpoint: Path, dest: Path, info_path: Path, evals: list[tuple[Path, dict]],
             hardware: str, also: list[dict], digest: str) -> Path:
     info = json.loads(info_path.read_text())
-    tasks = [e["config"]["task"] for _, e in evals] or [DEFAULT_TASK]
+    tasks = [e["config"]["task"] for _, e in evals] or [info.get("dataset_task") or DEFAULT_TASK]
     tmp = dest.with_name(dest.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     try:

@@ -8,7 +8,7 @@ trainers) keep the plain default and get no note.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -64,7 +64,7 @@ def unseen_task_note(checkpoint: str | Path, tasks: Sequence[str | Path]) -> str
             f"{'' if len(unseen) == 1 else ' there'}, or pass the --task it learned")
 
 
-def check_unseen_seeds(demos: dict[str, Any], task: Any, seeds: range,
+def check_unseen_seeds(demos: dict[str, Any], task: Any, seeds: Iterable[int],
                        allow_train_seeds: bool) -> None:
     """Refuse to measure a policy on evaluation seeds its demos hold for this task (rollouts
     of ``eval --save-rollouts`` it was trained on), unless `allow_train_seeds`."""

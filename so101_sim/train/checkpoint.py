@@ -121,17 +121,21 @@ def demos_of(path: str | Path) -> dict[str, Any]:
     return {k: info[k] for k in (TASK_KEY, TEXTS_KEY, SEEDS_KEY) if k in info}
 
 
+def ranges_text(ranges: list[list[int]], limit: int = 4) -> str:
+    """[[1, 3], [5, 5]] -> "1..3, 5"; past `limit` ranges, ", ..."."""
+    shown = ", ".join(f"{lo}..{hi}" if hi > lo else f"{lo}" for lo, hi in ranges[:limit])
+    return shown + (", ..." if len(ranges) > limit else "")
+
+
 def eval_seeds_note(dataset_dir: Path, info: dict[str, Any]) -> str | None:
     """One line when the demos include evaluation seeds, else None."""
     ranges = info.get(SEEDS_KEY) or []
     if not ranges:
         return None
-    shown = ", ".join(f"{lo}..{hi}" if hi > lo else f"{lo}" for lo, hi in ranges[:4])
-    more = ", ..." if len(ranges) > 4 else ""
-    return (f"so101-sim train: note: {dataset_dir} holds episodes on evaluation seeds ({shown}"
-            f"{more}), e.g. rollouts of `eval --save-rollouts`; eval will refuse to measure "
-            "this policy on them (its own training episodes): evaluate it with --seed-start "
-            f"above {ranges[-1][1]}")
+    return (f"so101-sim train: note: {dataset_dir} holds episodes on evaluation seeds "
+            f"({ranges_text(ranges)}), e.g. rollouts of `eval --save-rollouts`; eval will "
+            "refuse to measure this policy on them (its own training episodes): evaluate it "
+            f"with --seed-start above {ranges[-1][1]}")
 
 
 def checkpoint_name(path: Path) -> str:
