@@ -162,3 +162,18 @@ def test_export_refuses_an_eval_on_the_policys_own_rollout_seeds(tmp_path: Path)
         check_measured(measured("lift", 100008, 100009, 100010), "w", ck, log=print)
     check_measured(measured("lift", 100010, 100011), "w", ck, log=print)  # held out
     check_measured(measured("stack", 100000), "w", ck, log=print)  # another task's scenes
+
+
+def test_a_suite_refuses_before_its_first_task_runs(tmp_path: Path) -> None:
+    """Only a sidecar, no weights: pick_place, first in the list, would fail to load; the
+    refusal for lift comes before anything is loaded or run."""
+    from so101_sim.harness.suite import evaluate_suite
+
+    ck = checkpoint(tmp_path / "ck", dataset_task="lift", dataset_eval_seeds=[[100000, 100001]])
+    with pytest.raises(ValueError, match=r"seeds 100000\.\.100001 of lift are among"):
+        evaluate_suite(str(ck), ["pick_place", "lift"], out_dir=tmp_path / "out", episodes=4,
+                       log=print)
+    with pytest.raises(FileNotFoundError, match=r"has no config\.json"):  # later seeds: it runs
+        evaluate_suite(str(ck), ["pick_place", "lift"], out_dir=tmp_path / "out", episodes=4,
+                       seed_start=100002, log=print)
+    assert not (tmp_path / "out").exists()

@@ -16,8 +16,11 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+from so101_sim.dataset import EVAL_SEED_START
 from so101_sim.harness.stats import wilson_interval
+from so101_sim.harness.trained_on import check_unseen_seeds
 from so101_sim.tasks import available_tasks, load_task
+from so101_sim.train.checkpoint import demos_of
 from so101_sim.utils.atomic import write_json_atomic
 from so101_sim.utils.disk import note_default_out
 
@@ -69,6 +72,13 @@ def evaluate_suite(policy: str, tasks: Sequence[str], *,
         if left:
             log(f"so101-sim eval: --policy baseline: no shipped weights for {left} (cards and "
                 "recipes: policy/baselines.toml); evaluating the others")
+    demos = demos_of(policy) if Path(str(policy)).is_dir() else {}
+    if demos:  # rollout seeds it was trained on: refused before the first task runs
+        start = evaluate_kwargs.get("seed_start", EVAL_SEED_START)
+        seeds = range(start, start + evaluate_kwargs.get("episodes", 50))
+        for spec in specs:
+            check_unseen_seeds(demos, spec, seeds,
+                               bool(evaluate_kwargs.get("allow_train_seeds")))
     t0 = time.perf_counter()
     results: dict[str, dict[str, Any]] = {}
     for spec in specs:
