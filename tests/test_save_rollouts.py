@@ -15,6 +15,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -197,7 +198,18 @@ def test_a_policy_trained_on_rollouts_is_not_measured_on_their_seeds(runs, capsy
     r = train(root, base / "run", preset_name=str(tiny_preset(base)), steps=1, progress=False)
     info = read_train_info(r.pretrained_dir)
     assert info["dataset_eval_seeds"] == [[100000, 100002]] and info["dataset_task"] == "pick_place"
-    assert f"{root} holds episodes on evaluation seeds (100000..100002)" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert f"{root} holds episodes on evaluation seeds (100000..100002)" in out
+    # the failed seed (100001, episode 1) is named, with lerobot's command that drops it
+    note = next(line for line in out.splitlines() if "failed (episode_success false" in line)
+    assert note.startswith(f"so101-sim train: note: 1 of 3 episodes in {root} failed")
+    command = shlex.split(note.split("to train on the successes only: ", 1)[1])
+    assert command[0] == "lerobot-edit-dataset" and command[-1] == "[1]"
+    exe = str(Path(sys.executable).parent / command[0])
+    proc = subprocess.run([exe, *command[1:]], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "HF_HUB_OFFLINE": "1"})
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert stored_seeds(Path(f"{root}_ok")) == [100000, 100002]
     with pytest.raises(ValueError, match=r"seeds 100001\.\.100002 of pick_place are among the "
                                          r"policy's training episodes .*--seed-start 100003"):
         evaluate(str(r.pretrained_dir), episodes=4, seed_start=100001, out_dir=base / "e",

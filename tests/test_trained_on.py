@@ -177,3 +177,14 @@ def test_a_suite_refuses_before_its_first_task_runs(tmp_path: Path) -> None:
         evaluate_suite(str(ck), ["pick_place", "lift"], out_dir=tmp_path / "out", episodes=4,
                        seed_start=100002, log=print)
     assert not (tmp_path / "out").exists()
+
+
+def test_the_failures_note_quotes_its_paths() -> None:
+    from so101_sim.train.demos import failures_note
+
+    assert failures_note(Path("ds"), "local/x", [], 5) is None
+    note = failures_note(Path("my data/ro"), "local/x", [0, 3], 5)
+    assert note.endswith("--root 'my data/ro' --new_repo_id local/x_ok --new_root "
+                         "'my data/ro_ok' --operation.type delete_episodes "
+                         "--operation.episode_indices '[0, 3]'")
+    assert "2 of 5 episodes in my data/ro failed" in note

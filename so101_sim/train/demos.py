@@ -6,6 +6,7 @@ often near the gripper's closes)."""
 from __future__ import annotations
 
 import math
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -13,6 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from so101_sim.dataset.reader import read_frames
 from so101_sim.train.frame_cache import load_frames
 from so101_sim.train.presets import Preset
 from so101_sim.train.state import TrainError
@@ -150,3 +152,25 @@ def sample_weights(demos: DemoArrays, action_names: list[str],
                          "drop the flag, or check the dataset holds grasps")
     w = np.where(near, weighting.factor, 1.0)
     return w / w.sum()
+
+
+def failed_episodes(root: Path, features: dict[str, Any]) -> list[int]:
+    """Indices of the episodes whose ``episode_success`` is false (rollouts of ``eval
+    --save-rollouts`` keep every outcome); [] for a dataset without that column."""
+    if "episode_success" not in features:
+        return []
+    df = read_frames(Path(root), ["episode_index", "episode_success"])
+    first = df.groupby("episode_index")["episode_success"].first()
+    return [int(i) for i, ok in first.items() if not bool(np.asarray(ok).reshape(-1)[0])]
+
+
+def failures_note(root: Path, repo_id: str, failed: list[int], total: int) -> str | None:
+    """One line when the demos include failed episodes, with lerobot's command to drop them."""
+    if not failed:
+        return None
+    ok = shlex.quote(f"{Path(root)}_ok")
+    return (f"so101-sim train: note: {len(failed)} of {total} episodes in {root} failed "
+            "(episode_success false: rollouts keep every outcome) and are imitated like the "
+            f"rest; to train on the successes only: lerobot-edit-dataset --repo_id {repo_id} "
+            f"--root {shlex.quote(str(root))} --new_repo_id {repo_id}_ok --new_root {ok} "
+            f"--operation.type delete_episodes --operation.episode_indices '{failed}'")

@@ -41,6 +41,8 @@ from so101_sim.train.augment import FrameAugmenter
 from so101_sim.train.checkpoint import demos_info, eval_seeds_note, init_weights_from
 from so101_sim.train.demos import (
     CloseWeighting,
+    failed_episodes,
+    failures_note,
     gather_batch,
     load_demos,
     normalization_stats,
@@ -269,7 +271,9 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             "total_steps": steps, "device": device,
             "train_settings": asdict(ts)}
 
-    if note := eval_seeds_note(dataset_dir, info):
+    failed = failed_episodes(dataset_dir, dataset.meta.features)
+    for note in filter(None, (eval_seeds_note(dataset_dir, info), failures_note(
+            dataset_dir, dataset.repo_id, failed, dataset.meta.total_episodes))):
         print(note)
     stop = {"signal": None}
 
