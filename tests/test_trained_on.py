@@ -126,6 +126,11 @@ def test_train_records_the_evaluation_seeds_among_its_demos(tmp_path: Path) -> N
     recorded = demos_info({}, [], list(range(50)))  # record's demos: training seeds only
     assert recorded["dataset_eval_seeds"] == [] and eval_seeds_note(tmp_path, recorded) is None
     assert demos_info({}, [], None)["dataset_eval_seeds"] == []  # a dataset without seeds
+    # no sidecar (e.g. after lerobot-edit-dataset): a text only one task has names it
+    lift = load_task("lift").description
+    assert demos_info({}, [lift], None)["dataset_task"] == "lift"
+    assert demos_info({}, [load_task("pick_place").description], None)["dataset_task"] is None
+    assert demos_info({}, [lift, STACK], None)["dataset_task"] is None  # a merge of several
 
 
 def test_eval_refuses_the_seeds_of_its_own_training_rollouts() -> None:

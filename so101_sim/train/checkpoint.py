@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from so101_sim.dataset.schema import EVAL_SEED_START
+from so101_sim.tasks import available_tasks, load_task
 from so101_sim.train.widen import widen_conditioning, widen_keypoints
 from so101_sim.utils.trust import check_processor_files
 
@@ -104,15 +105,21 @@ def train_image_size(path: Path) -> tuple[int, int] | None:
 def demos_info(dataset_sidecar: dict[str, Any], task_texts: Any,
                seeds: list[int] | None) -> dict[str, Any]:
     """The keys above for a dataset: its sidecar, lerobot's task index (``meta.tasks.index``)
-    and its episodes' seeds (None for a dataset without ``episode_seed``)."""
+    and its episodes' seeds (None for a dataset without ``episode_seed``). Without a sidecar
+    (a dataset lerobot's tools rewrote), one text that names one task of the suite is that
+    task."""
     ranges: list[list[int]] = []
     for s in sorted(s for s in seeds or () if s >= EVAL_SEED_START):
         if ranges and s <= ranges[-1][1] + 1:
             ranges[-1][1] = s
         else:
             ranges.append([s, s])
-    return {TASK_KEY: dataset_sidecar.get("task"),
-            TEXTS_KEY: sorted(str(t) for t in task_texts), SEEDS_KEY: ranges}
+    texts = sorted(str(t) for t in task_texts)
+    task = dataset_sidecar.get("task")
+    if task is None and len(texts) == 1:
+        named = [n for n in available_tasks() if load_task(n).description == texts[0]]
+        task = named[0] if len(named) == 1 else None  # pick_place's variants share a text
+    return {TASK_KEY: task, TEXTS_KEY: texts, SEEDS_KEY: ranges}
 
 
 def demos_of(path: str | Path) -> dict[str, Any]:
