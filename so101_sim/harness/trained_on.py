@@ -1,9 +1,11 @@
-"""Which task a checkpoint's demos were of, from the ``so101_sim_train.json`` ``train`` writes.
+"""What a checkpoint's demos were, from the ``so101_sim_train.json`` ``train`` writes.
 
-``eval`` and ``curve`` default ``--task`` to it (a policy trained on ``stack`` demos run on
-the default ``pick_place`` scores about 0 and looks broken), and say in one line when the task
-asked for is not one the demos showed. Checkpoints without these keys (older runs, other
-trainers) keep the plain default and get no note.
+``eval`` and ``curve`` default ``--task`` to the demos' task (a policy trained on ``stack``
+demos run on the default ``pick_place`` scores about 0 and looks broken), and say in one line
+when the task asked for is not one the demos showed. The harness refuses to measure a policy on
+evaluation seeds its demos hold (rollouts of ``eval --save-rollouts`` it was trained on): that
+rate would be on its training data. Checkpoints without these keys (older runs, other trainers)
+keep the plain default, get no note and no check.
 """
 
 from __future__ import annotations
