@@ -72,7 +72,7 @@ def evaluate_suite(policy: str, tasks: Sequence[str], *,
         if left:
             log(f"so101-sim eval: --policy baseline: no shipped weights for {left} (cards and "
                 "recipes: policy/baselines.toml); evaluating the others")
-    demos = demos_of(policy) if Path(str(policy)).is_dir() else {}
+    demos = demos_of(str(policy))  # {} for expert, baseline or module:factory
     if demos:  # rollout seeds it was trained on: refused before the first task runs
         start = evaluate_kwargs.get("seed_start", EVAL_SEED_START)
         seeds = range(start, start + evaluate_kwargs.get("episodes", 50))

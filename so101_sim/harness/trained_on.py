@@ -15,12 +15,11 @@ from pathlib import Path
 from typing import Any
 
 from so101_sim.tasks import TaskSpecError, load_task
-from so101_sim.train.checkpoint import SEEDS_KEY, TASK_KEY, TEXTS_KEY, read_train_info
+from so101_sim.train.checkpoint import SEEDS_KEY, TASK_KEY, TEXTS_KEY, demos_of
 
 
 def _info(checkpoint: str | Path) -> dict[str, Any]:
-    path = Path(checkpoint).expanduser()
-    return (read_train_info(path) or {}) if path.is_dir() else {}
+    return demos_of(Path(checkpoint).expanduser())
 
 
 def trained_task(checkpoint: str | Path) -> str | None:
