@@ -371,15 +371,32 @@ def test_a_damaged_dataset_or_init_checkpoint_is_one_line(tmp_path: Path) -> Non
                                   ["export", "policy/pick_place_diffusion"]])
 def test_out_that_is_a_file_is_one_line(argv: list[str], tmp_path: Path, capsys,
                                         monkeypatch) -> None:
-    """demo made a FileExistsError traceback; export called the file 'other files'."""
+    """demo made a FileExistsError traceback; export called the file 'other files' and
+    printed it without the 'error:' the other commands print."""
     from so101_sim.cli import main
 
     monkeypatch.chdir(Path(__file__).parents[1])
     target = tmp_path / "afile"
     target.write_text("mine")
     assert main([*argv, "--out", str(target)]) == 2
-    assert f"--out {target} is a file; expected a folder" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.startswith(f"so101-sim {argv[0]}: error: ")  # as every other command's errors
+    assert f"{target} is a file; expected a folder" in err
     assert target.read_text() == "mine"
+
+
+@pytest.mark.parametrize("argv", [["train", "--dataset", "no_such_dataset", "--out", "run"],
+                                  ["export", "no_such_checkpoint", "--out", "shipped"]])
+def test_train_and_export_errors_say_error(argv: list[str], tmp_path: Path, capsys,
+                                           monkeypatch) -> None:
+    """train's and export's own errors lacked the 'error:' every other command prints."""
+    from so101_sim.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"so101-sim {argv[0]}: error: ") and err.count("\n") == 1, err
+    assert argv[1] in err
 
 
 def test_env_workers_are_capped_by_the_available_memory(tmp_path: Path, monkeypatch) -> None:

@@ -78,7 +78,7 @@ def cmd_train(args: argparse.Namespace) -> int:
                   keep_frame_cache=args.keep_frame_cache,
                   oversample_closes=args.oversample_closes)
     except (TrainError, PresetError) as e:
-        print(f"so101-sim train: {e}", file=sys.stderr)
+        print(f"so101-sim train: error: {e}", file=sys.stderr)
         return 2
     except TrainingStopped as e:
         print(f"so101-sim train: {e}; continue with --resume", file=sys.stderr)
@@ -294,7 +294,7 @@ def cmd_export(args: argparse.Namespace) -> int:
                              [Path(d) for d in args.eval], args.hardware,
                              [Path(d) for d in args.also_eval], replace=args.replace)
     except (FileNotFoundError, ValueError) as e:
-        print(f"so101-sim export: {e}", file=sys.stderr)
+        print(f"so101-sim export: error: {e}", file=sys.stderr)
         return 2
     size = sum(f.stat().st_size for f in dest.iterdir()) / 1e6
     print(f"{dest}: {size:.1f} MB (model card {dest / 'README.md'})")
