@@ -97,6 +97,21 @@ def test_compare_cli_writes_json_and_markdown(tmp_path, capsys):
     assert "exact McNemar p" in out and "Newcombe" in out
 
 
+def test_one_seed_is_one_seed(tmp_path, capsys):
+    """A one-episode smoke run was "paired on 1 seeds"; counts in user lines agree in number."""
+    from so101_sim.utils.text import counted, seed_span
+
+    a = _fake_run(tmp_path, "cand", {100_000: True})
+    b = _fake_run(tmp_path, "base", {100_000: False})
+    assert main(["compare", str(a), str(b), "--out", str(tmp_path / "cmp")]) == 0
+    assert "paired on 1 seed of pick_place (100000)" in capsys.readouterr().out
+    assert "the same 1 seed (100000)" in (tmp_path / "cmp" / "compare.md").read_text()
+    assert [counted(n, "env") for n in (0, 1, 2)] == ["0 envs", "1 env", "2 envs"]
+    assert counted(1, "paired episode") == "1 paired episode"
+    assert counted(3, "copy", "copies") == "3 copies"
+    assert seed_span(7, 7) == "seed 7" and seed_span(7, 9) == "seeds 7..9"
+
+
 def test_compare_refuses_other_seeds_or_task(tmp_path, capsys):
     a = _fake_run(tmp_path, "a", dict.fromkeys(range(100_000, 100_010), True))
     b = _fake_run(tmp_path, "b", dict.fromkeys(range(100_000, 100_012), True))

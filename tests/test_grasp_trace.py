@@ -61,7 +61,7 @@ def test_the_experts_grasp_closes_on_the_cube_and_opens_to_release(tmp_path: Pat
     # One reopening after a close (the release), no retry.
     counts = _trace("--count-reopens", str(rollouts))
     assert counts.returncode == 0, counts.stderr
-    assert counts.stdout.strip() == f"{rollouts}: 1 episodes; by reopens after a close: 1: 1"
+    assert counts.stdout.strip() == f"{rollouts}: 1 episode; by reopens after a close: 1: 1"
 
 
 def test_a_folder_that_is_not_a_rollouts_dataset_is_named(tmp_path: Path) -> None:

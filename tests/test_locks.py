@@ -163,7 +163,7 @@ def test_a_sigkilled_run_leaves_no_lock_behind(tmp_path: Path,
     assert (out / LOCK_FILE).exists()  # the file stays, the kernel dropped its lock
     capsys.readouterr()
     assert main([*argv, "--resume"]) == 0  # in this process: its imports are done
-    assert "1 episodes" in capsys.readouterr().out and not (out / LOCK_FILE).exists()
+    assert ": 1 episode (" in capsys.readouterr().out and not (out / LOCK_FILE).exists()
 
 
 def test_lock_in_one_process_names_its_holder(tmp_path: Path) -> None:

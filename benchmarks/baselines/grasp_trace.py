@@ -44,6 +44,7 @@ import pandas as pd
 from so101_sim.dataset import SIDECAR, info_features, read_frames, read_sidecar
 from so101_sim.expert import ScriptedExpert
 from so101_sim.sim import SO101Env
+from so101_sim.utils.text import counted
 
 GRIPPER = 5  # action index of the gripper: 0 closed .. 100 open
 PAN = 0  # action index of shoulder_pan
@@ -204,7 +205,7 @@ def main(argv: list[str] | None = None) -> None:
         for folder, (_, eps) in zip(args.folders, loaded, strict=True):
             counts = Counter(reopens(np.stack(ep["action"].to_numpy())[:, GRIPPER], args.open,
                                      args.closed) for ep in eps)
-            print(f"{folder}: {len(eps)} episodes; by reopens after a close: "
+            print(f"{folder}: {counted(len(eps), 'episode')}; by reopens after a close: "
                   + ", ".join(f"{k}: {counts[k]}" for k in sorted(counts)))
         return
     cols = ("seed", "failure", "replay_matches", "first_close", "nearest_before_cm",

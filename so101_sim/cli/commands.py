@@ -9,6 +9,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from so101_sim.utils.text import counted
+
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from so101_sim.record.demo import contact_sheet, parse_grid, run_demo
@@ -45,7 +47,7 @@ def cmd_record(args: argparse.Namespace) -> int:
               "(continue with --resume)", file=sys.stderr)
         return 130
     reused = f"; {s['reused']} recovered from before a kill" if s.get("reused") else ""
-    print(f"{args.out}: {s['episodes']} episodes ({s['new_episodes']} new{reused}; "
+    print(f"{args.out}: {counted(s['episodes'], 'episode')} ({s['new_episodes']} new{reused}; "
           f"{s['successes']}/{s['tried']} seeds succeeded), "
           f"{s['env_steps']} env-steps in {s['seconds']:.1f} s = {s['steps_per_s']:.1f} steps/s")
     return 0

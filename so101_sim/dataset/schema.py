@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 from so101_sim.tasks import DEFAULT_CAMERAS
+from so101_sim.utils.text import seed_span
 from so101_sim.utils.units import FEATURE_NAMES
 
 #: Demonstrations come from the training seed range; seeds >= this are for evaluation only.
@@ -58,7 +59,8 @@ def check_seed_range(seed_start: int, n_seeds: int = 1) -> None:
         fix = (f"; {n_seeds} episodes fit with --seed-start {EVAL_SEED_START - n_seeds} or lower"
                if n_seeds > 1 and seed_start < EVAL_SEED_START else "")
         raise ValueError(
-            f"seeds {seed_start}..{seed_start + n_seeds - 1} reach the evaluation range "
+            f"{seed_span(seed_start, seed_start + n_seeds - 1)} "
+            f"{'reaches' if n_seeds == 1 else 'reach'} the evaluation range "
             f"(>= {EVAL_SEED_START}); demonstrations must use training seeds "
             f"0..{EVAL_SEED_START - 1}{fix}")
 

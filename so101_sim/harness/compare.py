@@ -17,6 +17,7 @@ from typing import Any
 from so101_sim.harness.results import EPISODES, INFO, check_eval_info
 from so101_sim.harness.stats import mcnemar_p_value, paired_difference_interval, wilson_interval
 from so101_sim.utils.atomic import write_json_atomic, write_text_atomic
+from so101_sim.utils.text import counted
 from so101_sim.utils.versions import SETUP_KEYS, setup_differences
 
 JSON_NAME = "compare.json"
@@ -180,7 +181,8 @@ def summary_lines(r: dict[str, Any]) -> list[str]:
                      f"{s['success_ci95'][1]:.1f}); images: {s['images']} [{s['run']}]")
     p = r["paired"]
     lo, hi = r["difference_ci95_pp"]
-    lines.append(f"paired on {r['n_seeds']} seeds of {r['task']} ({r['seeds']}): both succeed "
+    lines.append(f"paired on {counted(r['n_seeds'], 'seed')} of {r['task']} ({r['seeds']}): both "
+                 f"succeed "
                  f"{p['both']}, only A {p['only_a']}, only B {p['only_b']}, neither "
                  f"{p['neither']}")
     lines.append(f"A - B = {r['difference_pp']:+.1f} points (95% CI {lo:+.1f} to {hi:+.1f}, "
@@ -213,7 +215,7 @@ def markdown(r: dict[str, Any]) -> str:
             for k, s in (("a", a), ("b", b))]
     lines = [
         f"# Paired comparison: {a['policy']} (A) vs {b['policy']} (B)", "",
-        f"Task `{r['task']}`, the same {r['n_seeds']} seeds ({r['seeds']}).", "",
+        f"Task `{r['task']}`, the same {counted(r['n_seeds'], 'seed')} ({r['seeds']}).", "",
         "| run | policy | images | success | 95% Wilson | folder |",
         "| --- | --- | --- | --- | --- | --- |", *rows, "",
         "## Seed by seed", "",

@@ -9,6 +9,7 @@ from typing import Any
 
 from so101_sim.harness.results import EpisodeRecord
 from so101_sim.utils.atomic import write_text_atomic
+from so101_sim.utils.text import counted
 
 
 def write_report(out_dir: str | Path, result: dict[str, Any],
@@ -36,7 +37,7 @@ def write_report(out_dir: str | Path, result: dict[str, Any],
         f"| avg episode length | {agg['avg_episode_len']:.1f} steps |",
         f"| avg sum / max reward | {agg['avg_sum_reward']:.3f} / {agg['avg_max_reward']:.3f} |",
         f"| wall time (this run) | {agg['eval_s']:.1f} s, {agg['eval_ep_s']:.2f} s/episode, "
-        f"{cfg['n_envs']} envs |",
+        f"{counted(cfg['n_envs'], 'env')} |",
         f"| physics / render / policy | {t['physics_s']:.1f} / {t['render_s']:.1f} / "
         f"{t['policy_s']:.1f} s (summed over episodes) |",
     ]

@@ -45,6 +45,7 @@ from so101_sim.tasks import TaskSpec, load_task, task_ref
 from so101_sim.utils.devices import eval_policy_threads, torch_threads, workers_that_fit
 from so101_sim.utils.disk import note_default_out
 from so101_sim.utils.locks import lock_scope
+from so101_sim.utils.text import counted, seed_span
 from so101_sim.utils.versions import run_setup
 from so101_sim.workers import PoolInfo, Reply, check_backend, start_pool
 
@@ -153,9 +154,9 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
     if sink is not None:
         done = _open_rollouts(sink, resume, done, save_rollouts, log)
     todo = deque(s for s in range(seed_start, seed_start + episodes) if s not in done)
-    log(f"so101-sim eval: {info.name} on {spec.name}, seeds {seed_start}.."
-        f"{seed_start + episodes - 1} ({len(done)} done, {len(todo)} to run), "
-        f"{min(n_envs, max(1, len(todo)))} envs; images: {rendering.label}")
+    log(f"so101-sim eval: {info.name} on {spec.name}, "
+        f"{seed_span(seed_start, seed_start + episodes - 1)} ({len(done)} done, {len(todo)} to "
+        f"run), {counted(min(n_envs, max(1, len(todo))), 'env')}; images: {rendering.label}")
 
     t_start = time.perf_counter()
     n_run, workers = 0, PoolInfo(backend, 0)

@@ -46,6 +46,8 @@ from typing import Any
 
 import numpy as np
 
+from so101_sim.utils.text import counted
+
 __all__ = ["NOT_WORSE", "UNDECIDED", "WORSE", "SequentialPairedTest", "Verdict",
            "batch_verdicts", "fixed_n_for_power", "sequential_verdict"]
 
@@ -193,8 +195,7 @@ class Verdict:
         pts = f"margin {_pts(self.margin)} pts"
         if self.verdict != WORSE:
             pts += f", indifference {_pts(self.indifference)} pts"
-        unit = "paired episode" if n == 1 else "paired episodes"
-        return (f"sequential verdict: {self.verdict} after {n} {unit} "
+        return (f"sequential verdict: {self.verdict} after {counted(n, 'paired episode')} "
                 f"({counts}; {evidence}; {pts})")
 
 

@@ -43,6 +43,7 @@ from so101_sim.sim.rendering import select_gl_backend
 from so101_sim.tasks import load_task
 from so101_sim.utils.devices import RECORD_WORKER_MB, cpu_count, workers_that_fit
 from so101_sim.utils.locks import folder_lock
+from so101_sim.utils.text import counted
 from so101_sim.utils.versions import installed
 from so101_sim.utils.video_backend import quiet_libav
 from so101_sim.workers import check_backend
@@ -193,7 +194,8 @@ def replay(dataset_dir: str | Path, episode: int) -> float:
     ep = df[df["episode_index"] == episode].sort_values("frame_index")
     if len(ep) == 0:
         n = df["episode_index"].nunique()
-        raise ValueError(f"episode {episode} not in {root} (it has {n} episodes, 0..{n - 1})")
+        raise ValueError(f"episode {episode} not in {root} (it has {counted(n, 'episode')}, "
+                         f"0..{n - 1})")
     seed = int(np.asarray(ep["episode_seed"].iloc[0]).reshape(-1)[0])
     states = np.stack([np.asarray(s, dtype=np.float32) for s in ep["observation.state"]])
     actions = np.stack([np.asarray(a, dtype=np.float32) for a in ep[act_key]])
