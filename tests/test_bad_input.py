@@ -196,11 +196,20 @@ def test_resume_without_out_is_refused(tmp_path, capsys, monkeypatch):
     ["eval", "--policy", "expert", "--inference-steps", "0"],
     ["curve", "run", "--episodes", "0"],
     ["curve", "run", "--n-envs", "-1"],
+    ["curve", "run", "--every", "-3"],
+    ["train", "--dataset", "d", "--out", "o", "--steps", "0"],
+    ["train", "--dataset", "d", "--out", "o", "--batch-size", "0"],
+    ["train", "--dataset", "d", "--out", "o", "--stop-at", "-1"],
+    ["replay", "d", "--episode", "-1"],
+    ["explain", "--dataset", "d", "--episode", "-1"],
+    ["explain", "--dataset", "d", "--k", "-1"],
+    ["explain", "--dataset", "d", "--seed", "-1"],
 ])
 def test_counts_below_one_are_refused_by_the_parser(argv: list[str], capsys) -> None:
     """A count below 1 used to write an empty demo mp4 (--steps 0), fail inside numpy
     (--steps -1) or torch (train --threads -2) after minutes of frame decoding, or mean
-    'default' in silence (eval --threads 0); a negative demo seed failed in Gymnasium.
+    'default' in silence (eval --threads 0); a negative demo seed failed in Gymnasium. train
+    --steps 0 and curve --every -3 were refused after start-up, under another prefix.
     Others were caught by the library under its own names (`n_episodes=0`, `n_envs=0`)
     rather than the flag the user typed."""
     from so101_sim.cli import main
@@ -209,7 +218,7 @@ def test_counts_below_one_are_refused_by_the_parser(argv: list[str], capsys) -> 
         main(argv)
     assert exc.value.code == 2
     flag, value = argv[-2:]
-    low = 0 if flag in ("--seed", "--seed-start", "--videos") else 1
+    low = 0 if flag in ("--seed", "--seed-start", "--videos", "--every", "--episode", "--k") else 1
     assert f"argument {flag}: {value} is invalid; expected an integer >= {low}" in \
         capsys.readouterr().err
 

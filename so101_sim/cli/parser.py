@@ -188,7 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     rep = sub.add_parser("replay", help="re-simulate a recorded episode from its seed and "
                                         "actions; print the largest state deviation")
     rep.add_argument("dataset", help="dataset folder written by `so101-sim record`")
-    rep.add_argument("--episode", type=int, default=0,
+    rep.add_argument("--episode", type=nonnegative_int, default=0,
                      help="episode index in the dataset (default 0)")
     rep.set_defaults(func=commands.cmd_replay)
 
@@ -198,11 +198,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="preset name in policy/presets (cpu, seed, act) or a .toml path")
     tr.add_argument("--dataset", required=True, help="LeRobotDataset folder (so101-sim record)")
     tr.add_argument("--out", required=True, help="run folder (checkpoints, log, final policy)")
-    tr.add_argument("--steps", type=int, default=None,
+    tr.add_argument("--steps", type=positive_int, default=None,
                     help="total steps (default: preset); with --resume, a larger value "
                          "stretches the lr schedule from the checkpoint on")
-    tr.add_argument("--batch-size", type=int, default=None, help="default: preset")
-    tr.add_argument("--stop-at", type=int, default=None, metavar="STEP",
+    tr.add_argument("--batch-size", type=positive_int, default=None, help="default: preset")
+    tr.add_argument("--stop-at", type=positive_int, default=None, metavar="STEP",
                     help="pause at this step with a checkpoint; the schedule stays sized for "
                          "--steps, so --resume later continues the same run (for comparing runs "
                          "at equal steps)")
@@ -237,7 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
                                       "evaluation seeds: success against step and hours")
     cu.add_argument("run", help="the --out folder of `so101-sim train`")
     cu.add_argument("--episodes", type=positive_int, default=32, help="seeds per checkpoint")
-    cu.add_argument("--every", type=int, default=0,
+    cu.add_argument("--every", type=nonnegative_int, default=0,
                     help="only checkpoints whose step is a multiple of this (default: all)")
     cu.add_argument("--n-envs", type=positive_int, default=16,
                     help="env workers per checkpoint (default 16, as eval: two forwards of 8)")
@@ -384,14 +384,14 @@ def build_parser() -> argparse.ArgumentParser:
     xp.add_argument("--preset", default=None,
                     help="diffusion preset of the fresh policy traced when there is no "
                          "--policy (default seed)")
-    xp.add_argument("--episode", type=int, default=0,
+    xp.add_argument("--episode", type=nonnegative_int, default=0,
                     help="episode index in the dataset (default 0)")
     xp.add_argument("--frame", type=int, default=5,
                     help="current frame t within the episode (default 5: frames 4 and 5 are "
                          "observed, as in the walkthrough)")
-    xp.add_argument("--k", type=int, default=25,
+    xp.add_argument("--k", type=nonnegative_int, default=25,
                     help="diffusion step at which noise is added for the loss (default 25)")
-    xp.add_argument("--seed", type=int, default=0,
+    xp.add_argument("--seed", type=nonnegative_int, default=0,
                     help="seed of the noise (loss and sampling) and of a fresh policy")
     xp.add_argument("--out", default=None, help="output folder for explain.html and "
                                                 "explain.json (default "
