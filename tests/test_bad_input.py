@@ -223,6 +223,20 @@ def test_counts_below_one_are_refused_by_the_parser(argv: list[str], capsys) -> 
         capsys.readouterr().err
 
 
+@pytest.mark.parametrize("value", ["front,top", "front,front", ","])
+def test_bad_cameras_are_named_in_the_flags_syntax(value: str, capsys) -> None:
+    """record --cameras front,top answered with Python tuples: cameras=('front', 'top')."""
+    from so101_sim.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["record", "--out", "o", "--episodes", "1", "--cameras", value])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert (f"argument --cameras: {value!r} is invalid; expected distinct names from front, "
+            "side, wrist, e.g. front,side") in err
+    assert "(" not in err.splitlines()[-1].split("--cameras")[1]
+
+
 def test_a_curve_refuses_training_seeds_by_its_flag(capsys) -> None:
     """curve has no --allow-train-seeds: the library's hint to pass it was wrong there."""
     from so101_sim.cli import main

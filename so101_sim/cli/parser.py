@@ -78,11 +78,13 @@ def parse_ensemble_coeff(text: str) -> float | str:
 def parse_cameras(text: str) -> tuple[str, ...]:
     """argparse type for --cameras: "front,side,wrist" -> ("front", "side", "wrist")."""
     from so101_sim.sim.env_args import check_cameras
+    from so101_sim.tasks.spec import ALL_CAMERAS
 
     try:
         return check_cameras(tuple(c.strip() for c in text.split(",") if c.strip()))
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
+    except ValueError:  # in the flag's own syntax, not the Python tuple check_cameras names
+        raise argparse.ArgumentTypeError(f"{text!r} is invalid; expected distinct names from "
+                                         f"{', '.join(ALL_CAMERAS)}, e.g. front,side") from None
 
 
 def parse_camera_map_arg(text: str) -> dict[str, str]:
@@ -381,9 +383,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="lerobot diffusion checkpoint folder (read as data: processor steps "
                          "must be ones lerobot registers); default: a fresh, untrained "
                          "--preset policy with this dataset's normalisation stats")
-    xp.add_argument("--preset", default=None,
-                    help="diffusion preset of the fresh policy traced when there is no "
-                         "--policy (default seed)")
+    xp.add_argument("--preset", default=None, help="diffusion preset of the fresh policy "
+                    "traced when there is no --policy (default seed)")
     xp.add_argument("--episode", type=nonnegative_int, default=0,
                     help="episode index in the dataset (default 0)")
     xp.add_argument("--frame", type=int, default=5,
@@ -394,7 +395,6 @@ def build_parser() -> argparse.ArgumentParser:
     xp.add_argument("--seed", type=nonnegative_int, default=0,
                     help="seed of the noise (loss and sampling) and of a fresh policy")
     xp.add_argument("--out", default=None, help="output folder for explain.html and "
-                                                "explain.json (default "
-                                                "outputs/explain/<policy>-ep<E>-f<F>)")
+                    "explain.json (default outputs/explain/<policy>-ep<E>-f<F>)")
     xp.set_defaults(func=commands.cmd_explain)
     return parser
