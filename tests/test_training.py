@@ -574,11 +574,18 @@ def test_export_checks_what_an_eval_measured_and_what_it_replaces(
     with pytest.raises(ValueError, match="holds other files, not an exported policy"):
         export_policy(two, mine, replace=True)
     assert (mine / "notes.txt").read_text() == "keep me"
-    # an eval from before weights were recorded: exported, with one line saying so
-    del info["config"]["policy_weights"]
+    # an eval from before weights (and then software) were recorded: exported, with one line
+    del info["config"]["policy_weights"], info["config"]["software"]
     (tmp_path / "ev" / "eval_info.json").write_text(json.dumps(info))
     export_policy(four, tmp_path / "old", tmp_path / "ev", log=notes.append)
     assert len(notes) == 1 and "names no weights" in notes[0]
+    # the expert's eval went into a checkpoint's card with that same note
+    evaluate("expert", episodes=1, n_envs=1, out_dir=tmp_path / "ev_expert", videos=0,
+             progress=False, report=False)
+    with pytest.raises(ValueError, match=r"ev_expert/eval_info.json measured expert, which "
+                                         r"has no checkpoint weights, not .*step_0000004"):
+        export_policy(four, tmp_path / "expert_card", tmp_path / "ev_expert")
+    assert not (tmp_path / "expert_card").exists()
 
 
 def test_a_preset_variant_states_only_what_differs(tmp_path: Path) -> None:

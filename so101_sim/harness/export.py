@@ -226,6 +226,10 @@ def check_measured(evals: list[tuple[Path, dict]], digest: str, checkpoint: Path
     line saying it was not checked."""
     for path, e in evals:
         measured = e["config"].get("policy_weights")
+        if measured is None and "software" in e["config"]:  # recorded after the weights were
+            raise ValueError(f"{path} measured {e['config']['policy']}, which has no "
+                             f"checkpoint weights, not {checkpoint}; evaluate this checkpoint "
+                             "or its export and pass that folder")
         if measured is None:
             log(f"so101-sim export: note: {path} names no weights (an eval from before "
                 "they were recorded); not checked that it measured this checkpoint")
