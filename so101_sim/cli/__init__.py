@@ -5,7 +5,8 @@ from __future__ import annotations
 import os
 import sys
 
-from so101_sim.cli.parser import build_parser, parse_camera_map_arg, parse_image_size
+from so101_sim.cli.arg_types import parse_camera_map_arg, parse_image_size
+from so101_sim.cli.parser import build_parser
 from so101_sim.utils.collector import freeze_for_exit, own_process
 from so101_sim.utils.disk import again_hint, free_space, is_disk_full, set_command
 from so101_sim.workers.ray_connect import CONNECT_TIMEOUT_ENV, signal_exit_code
