@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from tiny_presets import tiny_act_preset, tiny_preset
+from tiny_presets import shrunk_preset, tiny_act_preset, tiny_preset
 
 from so101_sim.dataset import DEFAULT_REPO_ID
 from so101_sim.record import record
 from so101_sim.train import trainer
-from so101_sim.train.demos import gather_batch, load_demos
+from so101_sim.train.demos import frames_note, gather_batch, load_demos
 from so101_sim.train.presets import PresetError, load_preset, make_config, policy_features
 from so101_sim.train.state import list_checkpoints
 from so101_sim.train.trainer import TrainError, train
@@ -586,6 +586,30 @@ def test_export_checks_what_an_eval_measured_and_what_it_replaces(
                                          r"has no checkpoint weights, not .*step_0000004"):
         export_policy(four, tmp_path / "expert_card", tmp_path / "ev_expert")
     assert not (tmp_path / "expert_card").exists()
+
+
+def test_frames_smaller_or_shaped_unlike_the_preset_get_a_note(dataset: Path, tmp_path: Path,
+                                                                capsys) -> None:
+    """48x64 demos trained at 60x80 were upscaled, and square ones stretched, in silence."""
+    cpu = load_preset("cpu")
+    assert frames_note((480, 640), cpu) is None and frames_note((60, 80), cpu) is None
+    assert frames_note((76, 101), load_preset("seed")) is None  # 4:3 within rounding
+    assert frames_note((48, 64), cpu) == (
+        "so101-sim train: note: the dataset's frames are 48x64, smaller than preset cpu's 60x80 "
+        "input: they are upscaled, which adds no detail; record at 60x80 or larger (so101-sim "
+        "record --image-size, default 480x640), or train a preset made for 48x64 or less "
+        "(cpu48)")
+    assert "or train a preset" not in frames_note((30, 40), cpu)  # none is that small
+    square = frames_note((480, 480), cpu)
+    assert "another aspect ratio: every frame is stretched to 60x80" in square
+    assert "--image-size 480x640" in square
+    # train prints it: the 48x64 fixture demos on a tiny preset with 72x96 inputs
+    big = shrunk_preset(tmp_path, "cpu", "big", [
+        ("size = [24, 32]", "size = [72, 96]"), ("steps = 10000", "steps = 1"),
+        ("down_dims = [48, 96, 192]", "down_dims = [16, 32, 64]")])
+    train(dataset, tmp_path / "run", preset_name=str(big), progress=False)
+    assert ("the dataset's frames are 48x64, smaller than preset big's 72x96 input"
+            in capsys.readouterr().out)
 
 
 def test_a_preset_variant_states_only_what_differs(tmp_path: Path) -> None:

@@ -16,7 +16,7 @@ import torch
 
 from so101_sim.dataset.reader import read_frames
 from so101_sim.train.frame_cache import load_frames
-from so101_sim.train.presets import Preset
+from so101_sim.train.presets import Preset, available_presets, load_preset
 from so101_sim.train.state import TrainError
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -174,3 +174,32 @@ def failures_note(root: Path, repo_id: str, failed: list[int], total: int) -> st
             f"rest; to train on the successes only: lerobot-edit-dataset --repo_id {repo_id} "
             f"--root {shlex.quote(str(root))} --new_repo_id {repo_id}_ok --new_root {ok} "
             f"--operation.type delete_episodes --operation.episode_indices '{failed}'")
+
+
+def frames_note(recorded: tuple[int, int], preset: Preset) -> str | None:
+    """One line when the recorded frames are smaller than the preset's input (upscaled: no
+    detail is gained) or of another aspect ratio (stretched): both train without error."""
+    (h, w), (ph, pw) = recorded, preset.image_size
+    if abs(h / w - ph / pw) > 0.02:
+        return (f"so101-sim train: note: the dataset's frames are {h}x{w} and preset "
+                f"{preset.name}'s input {ph}x{pw}, another aspect ratio: every frame is "
+                f"stretched to {ph}x{pw}; record at the preset's aspect (so101-sim record "
+                f"--image-size {h}x{round(h * pw / ph)}) for undistorted frames")
+    if h >= ph and w >= pw:
+        return None
+    fits = [n for n in available_presets() if n != preset.name
+            and (s := load_preset(n)).policy_type == preset.policy_type
+            and s.image_size[0] <= h and s.image_size[1] <= w]
+    other = f", or train a preset made for {h}x{w} or less ({', '.join(fits)})" if fits else ""
+    return (f"so101-sim train: note: the dataset's frames are {h}x{w}, smaller than preset "
+            f"{preset.name}'s {ph}x{pw} input: they are upscaled, which adds no detail; record "
+            f"at {ph}x{pw} or larger (so101-sim record --image-size, default 480x640){other}")
+
+
+def demos_notes(root: Path, dataset: Any, preset: Preset) -> list[str]:
+    """The lines `train` prints about its demos before the first step: frames smaller than
+    or shaped unlike the preset's input, and failed episodes."""
+    size = tuple(dataset.meta.features[dataset.meta.video_keys[0]]["shape"][:2])
+    failed = failed_episodes(root, dataset.meta.features)
+    return [n for n in (frames_note(size, preset), failures_note(
+        root, dataset.repo_id, failed, dataset.meta.total_episodes)) if n]

@@ -41,8 +41,7 @@ from so101_sim.train.augment import FrameAugmenter
 from so101_sim.train.checkpoint import demos_info, eval_seeds_note, init_weights_from
 from so101_sim.train.demos import (
     CloseWeighting,
-    failed_episodes,
-    failures_note,
+    demos_notes,
     gather_batch,
     load_demos,
     normalization_stats,
@@ -248,12 +247,6 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             return finished_run(out, existing[-1], step, state["wall_s"], keep_frame_cache)
     start_step = step
     out.mkdir(parents=True, exist_ok=True)
-    demos = load_demos(dataset, preset, out / "frame_cache")
-    probs = sample_weights(demos, dataset.meta.features["action"]["names"], weighting)
-    if probs is not None:
-        near = probs > probs.min()
-        print(f"so101-sim train: {near.mean():.0%} of the frames are near a gripper close; drawn "
-              f"{weighting.factor:g}x as often, they are {probs[near].sum():.0%} of each batch")
     info = {"preset": preset.name, "preset_file": str(preset.path), "dataset": str(dataset_dir),
             "dataset_episodes": dataset.meta.total_episodes,
             "dataset_frames": dataset.meta.total_frames,
@@ -271,10 +264,15 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
             "total_steps": steps, "device": device,
             "train_settings": asdict(ts)}
 
-    failed = failed_episodes(dataset_dir, dataset.meta.features)
-    for note in filter(None, (eval_seeds_note(dataset_dir, info), failures_note(
-            dataset_dir, dataset.repo_id, failed, dataset.meta.total_episodes))):
-        print(note)
+    for note in filter(None, (eval_seeds_note(dataset_dir, info),
+                              *demos_notes(dataset_dir, dataset, preset))):
+        print(note)  # before the frames decode, which can take minutes
+    demos = load_demos(dataset, preset, out / "frame_cache")
+    probs = sample_weights(demos, dataset.meta.features["action"]["names"], weighting)
+    if probs is not None:
+        near = probs > probs.min()
+        print(f"so101-sim train: {near.mean():.0%} of the frames are near a gripper close; drawn "
+              f"{weighting.factor:g}x as often, they are {probs[near].sum():.0%} of each batch")
     stop = {"signal": None}
 
     def on_signal(signum, _frame):
