@@ -166,3 +166,11 @@ def test_resume_after_a_kill_before_the_dataset_existed(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"is not a LeRobot dataset \(no meta/info.json\)"):
         record(tmp_path / "other", 1, image_size=SMALL, progress=False, resume=True)
     assert (tmp_path / "other" / "notes.txt").exists()
+    # without --resume the refusal used to advise --resume, which then failed as above
+    with pytest.raises(ValueError, match=r"other holds other files and no LeRobot dataset "
+                                         r"\(no meta/info.json\), so --resume cannot continue "
+                                         r"it either; .* choose another --out"):
+        record(tmp_path / "other", 1, image_size=SMALL, progress=False)
+    assert [p.name for p in (tmp_path / "other").iterdir()] == ["notes.txt"]
+    with pytest.raises(ValueError, match="ds already exists and is not empty; pass --resume"):
+        record(root, 2, image_size=SMALL, progress=False)  # a dataset: --resume is the fix

@@ -266,6 +266,11 @@ def open_dataset(root: Path, resume: bool, repo_id: str, task_arg: str,
         clear_folder(root)  # nothing was recorded yet: start as if it had never run
         exists = False
     if exists and not resume:
+        if not ((root / "meta" / "info.json").exists() or _killed_while_creating(root)):
+            raise ValueError(f"{root} holds other files and no LeRobot dataset (no "
+                             "meta/info.json), so --resume cannot continue it either; record "
+                             "writes a new dataset into a new or empty folder: choose another "
+                             "--out")
         raise ValueError(f"{root} already exists and is not empty; pass --resume to continue "
                          "recording into it, or choose another --out")
     if resume and exists:
