@@ -33,6 +33,21 @@ def test_missing_task_file():
         load_task("/nonexistent/task.toml")
 
 
+def test_a_suite_name_wins_over_a_folder_of_that_name(tmp_path, monkeypatch):
+    """`record --task lift --out lift` leaves a folder `lift` here; `--task lift` is still the
+    suite's task, and a folder given as a task path is named as a folder."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "lift").mkdir()
+    (tmp_path / "pick_place").write_text("not toml")
+    assert load_task("lift").name == "lift"
+    assert load_task("pick_place").name == "pick_place"
+    (tmp_path / "mine.toml").mkdir()
+    with pytest.raises(TaskSpecError, match=r"'mine.toml' is a folder, not a task file"):
+        load_task("mine.toml")
+    with pytest.raises(TaskSpecError, match=r"'lift' is a folder"):
+        load_task("./lift")
+
+
 def test_unknown_key_names_key_and_allowed_keys(tmp_path):
     path = _write(tmp_path, "mass = 0.015", "colour = 'red'")
     with pytest.raises(TaskSpecError, match=r"unknown key 'cube.colour'.*\['mass', 'size', 'x'"):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import tomllib
 from dataclasses import MISSING, dataclass, fields
 from pathlib import Path
@@ -208,18 +209,22 @@ def available_tasks() -> list[str]:
 
 
 def resolve_task_path(task: str | Path) -> Path:
-    """A task name in envs/ or a path to a TOML file."""
-    path = Path(task)
+    """A task name in envs/ or a path to a TOML file. A bare name of the suite wins over a file
+    or folder of that name in the working directory (``record --task lift --out lift``)."""
+    path, text = Path(task), str(task)
+    own = envs_dir() / f"{text}.toml"
+    if not text.endswith(".toml") and not {"/", os.sep} & set(text) and own.is_file():
+        return own
     if path.suffix == ".toml" or path.exists():
+        if path.is_dir():
+            raise TaskSpecError(f"task {str(path)!r} is a folder, not a task file; pass a name "
+                                f"from {available_tasks()} or the path of a .toml file")
         if not path.is_file():
             raise TaskSpecError(f"task file {str(path)!r} does not exist; pass a name from "
                                 f"{available_tasks()} or an existing .toml path")
         return path
-    candidate = envs_dir() / f"{task}.toml"
-    if not candidate.is_file():
-        raise TaskSpecError(f"unknown task {str(task)!r}; expected one of {available_tasks()} "
-                            "or a path to a task .toml file")
-    return candidate
+    raise TaskSpecError(f"unknown task {str(task)!r}; expected one of {available_tasks()} "
+                        "or a path to a task .toml file")
 
 
 def task_ref(spec: TaskSpec) -> str:
