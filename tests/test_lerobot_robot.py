@@ -201,8 +201,14 @@ def test_bad_config_values_are_named(tmp_path):
     assert getattr(caught.value, TAG) == "--robot.type=so101_sim"
     with pytest.raises(ValueError, match="render_height/width=480x0"):
         SO101SimConfig(render_height=480)
-    with pytest.raises(ValueError, match=r"camera_names=\['top'\]"):
-        SO101Sim(SO101SimConfig(camera_names=["top"], calibration_dir=tmp_path))
+    # the task and the cameras too are checked by the config, so lerobot prints them in one
+    # line (SO101Sim(config) runs inside make_robot_from_config, which wraps its errors)
+    for bad, match in (({"camera_names": ["top"]}, r"camera_names=\['top'\]"),
+                       ({"camera_names": ["front", "front"]}, r"camera_names=\['front', 'front'\]"),
+                       ({"task": "lfit"}, r"--robot.task='lfit' is invalid: unknown task 'lfit'")):
+        with pytest.raises(ValueError, match=match) as caught:
+            SO101SimConfig(calibration_dir=tmp_path, **bad)
+        assert getattr(caught.value, TAG) == "--robot.type=so101_sim"
 
 
 def test_the_expert_finds_its_robot_by_id(tmp_path):

@@ -13,6 +13,8 @@ from pathlib import Path
 from lerobot.robots.config import RobotConfig
 from lerobot.teleoperators.config import TeleoperatorConfig
 
+from so101_sim.tasks import load_task
+from so101_sim.tasks.spec import ALL_CAMERAS
 from so101_sim.utils.lerobot_cli import config_errors, one_line_errors
 
 ROBOT_TYPE = "so101_sim"
@@ -62,6 +64,15 @@ class SO101SimConfig(RobotConfig):
             self._check()
 
     def _check(self) -> None:
+        try:
+            task = load_task(self.task)
+        except ValueError as exc:
+            raise ValueError(f"--robot.task={self.task!r} is invalid: {exc}") from exc
+        names = tuple(self.camera_names) or tuple(task.cameras)
+        if len(set(names)) != len(names) or any(c not in ALL_CAMERAS for c in names):
+            raise ValueError(f"--robot.camera_names={list(names)} is invalid; expected distinct "
+                             f"names from {list(ALL_CAMERAS)}, e.g. "
+                             "--robot.camera_names='[front,side]' (empty: the task's)")
         if self.episode_end not in EPISODE_END:
             raise ValueError(f"--robot.episode_end={self.episode_end!r} is invalid; expected "
                              f"one of {EPISODE_END}, e.g. --robot.episode_end=hold")

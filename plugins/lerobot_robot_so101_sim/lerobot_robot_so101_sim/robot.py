@@ -31,7 +31,6 @@ from lerobot_robot_so101_sim import registry
 from lerobot_robot_so101_sim.config import ROBOT_TYPE, SO101SimConfig
 from lerobot_robot_so101_sim.dataset_events import unwatch_datasets, watch_datasets
 from so101_sim.tasks import load_task
-from so101_sim.tasks.spec import ALL_CAMERAS
 from so101_sim.utils.units import FEATURE_NAMES
 
 logger = logging.getLogger(__name__)
@@ -66,12 +65,8 @@ class SO101Sim(Robot):
     def __init__(self, config: SO101SimConfig) -> None:
         super().__init__(config)
         self.config = config
-        self.task = load_task(config.task)  # a bad task fails here, before lerobot writes
+        self.task = load_task(config.task)  # the config has checked it and the cameras
         names = tuple(config.camera_names) or tuple(self.task.cameras)
-        if len(set(names)) != len(names) or any(c not in ALL_CAMERAS for c in names):
-            raise ValueError(f"--robot.camera_names={list(names)} is invalid; expected distinct "
-                             f"names from {list(ALL_CAMERAS)}, e.g. "
-                             "--robot.camera_names='[front,side]' (empty: the task's)")
         self.camera_names = names
         # lerobot sizes its image writers with len(robot.cameras): name -> (H, W, 3)
         self.cameras = {c: (*config.image_size, 3) for c in names}
