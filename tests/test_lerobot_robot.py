@@ -235,6 +235,15 @@ def test_the_expert_finds_its_robot_by_id(tmp_path):
                                                      robot_id="a"))
         expert.connect()
         assert set(expert.get_action()) == set(FEATURE_NAMES)
+        # from a lerobot command, a wrong --teleop.robot_id is one line (utils.lerobot_cli)
+        from so101_sim.utils.lerobot_cli import TAG
+
+        stray = SO101SimExpert(SO101SimExpertConfig(calibration_dir=tmp_path / "s",
+                                                    robot_id="c"))
+        stray.connect()
+        with pytest.raises(LookupError, match=r"--robot\.id='c'") as caught:
+            stray.get_action()
+        assert getattr(caught.value, TAG) == "--teleop.type=so101_sim_expert"
         a.disconnect()
         assert connected_robot() is b
     finally:

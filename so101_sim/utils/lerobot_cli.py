@@ -21,11 +21,12 @@ TAG = "so101_sim_flags"  # attribute set on a tagged exception: the flag group, 
 
 
 @contextmanager
-def config_errors(flags: str) -> Iterator[None]:
-    """Tag a ValueError raised inside with `flags` (how the user named the config)."""
+def config_errors(flags: str,
+                  kinds: tuple[type[Exception], ...] = (ValueError,)) -> Iterator[None]:
+    """Tag an error of `kinds` raised inside with `flags` (how the user named the config)."""
     try:
         yield
-    except ValueError as exc:
+    except kinds as exc:
         setattr(exc, TAG, flags)
         raise
 

@@ -15,6 +15,7 @@ from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnected
 
 from lerobot_robot_so101_sim.config import TELEOP_TYPE, SO101SimExpertConfig
 from lerobot_robot_so101_sim.registry import connected_robot
+from so101_sim.utils.lerobot_cli import config_errors
 from so101_sim.utils.units import FEATURE_NAMES
 
 
@@ -71,7 +72,8 @@ class SO101SimExpert(Teleoperator):
         twice before the sim steps, it answers the same)."""
         if not self._connected:
             raise DeviceNotConnectedError(f"{self} is not connected; call connect() first")
-        robot = connected_robot(self.config.robot_id)
+        with config_errors(f"--teleop.type={TELEOP_TYPE}", (LookupError,)):  # one line
+            robot = connected_robot(self.config.robot_id)
         index, seed, steps, over = robot.episode
         if over:
             return robot.held_action()
