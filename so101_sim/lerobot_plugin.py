@@ -81,7 +81,16 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         if self.obs_type not in OBS_TYPES:
             raise ValueError(f"obs_type={self.obs_type!r} is invalid; expected one of {OBS_TYPES}")
         if not self.task:
-            raise ValueError("task is required: a name in envs/ (e.g. 'pick_place') or a TOML path")
+            raise ValueError(f"task={self.task!r} is invalid; expected a name in envs/ (e.g. "
+                             "'pick_place') or a TOML path")
+        if self.render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode={self.render_mode!r} is invalid; expected "
+                             "'rgb_array' or None (rendering is headless)")
+        for name in ("image_height", "image_width"):
+            if not 16 <= getattr(self, name) <= 2048:
+                raise ValueError(f"{name}={getattr(self, name)} is invalid; expected 16..2048 "
+                                 "pixels, e.g. --env.image_height=60 --env.image_width=80 (the "
+                                 "shipped policy's input)")
         spec = load_task(self.task)
         self.fps = spec.fps if self.fps is None else self.fps
         self.episode_length = (spec.max_steps if self.episode_length is None

@@ -75,11 +75,17 @@ def test_features_follow_fields(obs_type: str, expected: set[str]) -> None:
 
 @pytest.mark.parametrize("kwargs", [
     {"obs_type": "pixels"}, {"fps": 10}, {"episode_length": 301}, {"episode_length": 0},
-    {"task": ""},
+    {"task": ""}, {"image_height": 0}, {"image_width": 4096}, {"render_mode": "human"},
 ])
 def test_invalid_fields_are_rejected(kwargs: dict) -> None:
-    with pytest.raises(ValueError):
+    """Each is refused by the config itself, tagged, so a lerobot command prints it in one line
+    (not later, from the env's constructor, as a traceback)."""
+    from so101_sim.utils.lerobot_cli import TAG
+
+    (name, value), = kwargs.items()
+    with pytest.raises(ValueError, match=f"{name}={value!r} is invalid|{name}={value} ") as caught:
         SO101PickPlaceEnvConfig(**kwargs)
+    assert getattr(caught.value, TAG) == f"--env.type={ENV_TYPE}"
 
 
 def test_a_lerobot_command_reports_a_bad_env_value_in_one_line(monkeypatch, capsys) -> None:
