@@ -205,7 +205,9 @@ def test_bad_config_values_are_named(tmp_path):
     # line (SO101Sim(config) runs inside make_robot_from_config, which wraps its errors)
     for bad, match in (({"camera_names": ["top"]}, r"camera_names=\['top'\]"),
                        ({"camera_names": ["front", "front"]}, r"camera_names=\['front', 'front'\]"),
-                       ({"task": "lfit"}, r"--robot.task='lfit' is invalid: unknown task 'lfit'")):
+                       ({"task": "lfit"}, r"--robot.task='lfit' is invalid: unknown task 'lfit'"),
+                       ({"outcomes_path": tmp_path}, "is invalid: it is a folder"),
+                       ({"outcomes_path": Path(__file__) / "o.jsonl"}, "lies under a file")):
         with pytest.raises(ValueError, match=match) as caught:
             SO101SimConfig(calibration_dir=tmp_path, **bad)
         assert getattr(caught.value, TAG) == "--robot.type=so101_sim"

@@ -73,6 +73,11 @@ class SO101SimConfig(RobotConfig):
             raise ValueError(f"--robot.camera_names={list(names)} is invalid; expected distinct "
                              f"names from {list(ALL_CAMERAS)}, e.g. "
                              "--robot.camera_names='[front,side]' (empty: the task's)")
+        out = self.outcomes_path
+        if out is not None and (Path(out).is_dir() or any(p.is_file() for p in Path(out).parents)):
+            raise ValueError(f"--robot.outcomes_path={str(out)!r} is invalid: it is a folder or "
+                             "lies under a file; expected the path of a JSON-lines file, e.g. "
+                             "--robot.outcomes_path=data/outcomes.jsonl")
         if self.episode_end not in EPISODE_END:
             raise ValueError(f"--robot.episode_end={self.episode_end!r} is invalid; expected "
                              f"one of {EPISODE_END}, e.g. --robot.episode_end=hold")
