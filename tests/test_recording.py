@@ -74,16 +74,24 @@ def test_replay_names_a_folder_it_cannot_replay(tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match="nope is not a LeRobotDataset"):
         replay(tmp_path / "nope", 0)
     vec = {"dtype": "float32", "shape": (6,), "names": list(FEATURE_NAMES)}
-    other = LeRobotDataset.create("someone/other", fps=FPS, root=tmp_path / "other",
-                                  features={"observation.state": vec, "action": vec},
-                                  use_videos=False)
-    for _ in range(3):
-        other.add_frame({"observation.state": np.zeros(6, np.float32),
-                         "action": np.zeros(6, np.float32), "task": "t"})
-    other.save_episode()
-    other.finalize()
-    with pytest.raises(ValueError, match="other has no episode_seed feature"):
+    for name, robot in (("other", None), ("sim", "so101_sim")):
+        made = LeRobotDataset.create(f"someone/{name}", fps=FPS, root=tmp_path / name,
+                                     features={"observation.state": vec, "action": vec},
+                                     use_videos=False, robot_type=robot)
+        for _ in range(3):
+            made.add_frame({"observation.state": np.zeros(6, np.float32),
+                            "action": np.zeros(6, np.float32), "task": "t"})
+        made.save_episode()
+        made.finalize()
+    with pytest.raises(ValueError, match="other has no episode_seed feature") as caught:
         replay(tmp_path / "other", 0)
+    assert "lerobot-replay" not in str(caught.value)
+    # recorded by lerobot-record through the sim robot: the error gives lerobot-replay's flags
+    with pytest.raises(ValueError, match=r"sim has no episode_seed feature.* replay it with "
+                       r"lerobot-replay --robot.type=so101_sim --robot.seed=SEED "
+                       r"--robot.episode_end=hold --dataset.repo_id=local/sim "
+                       r"--dataset.root=\S+sim --dataset.episode=0 "):
+        replay(tmp_path / "sim", 0)
 
 
 def test_evaluation_seeds_are_refused(tmp_path: Path) -> None:

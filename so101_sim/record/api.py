@@ -21,6 +21,7 @@ DART noise: see ``record.episode``.
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -185,9 +186,15 @@ def replay(dataset_dir: str | Path, episode: int) -> float:
                                 "the --out folder of `so101-sim record`")
     features = info_features(root)
     if "episode_seed" not in features:
+        robot = json.loads((root / "meta" / "info.json").read_text()).get("robot_type")
+        hint = (f"; it was recorded through --robot.type={robot}, so replay it with lerobot-replay "
+                f"--robot.type={robot} --robot.seed=SEED --robot.episode_end=hold "
+                f"--dataset.repo_id=local/{root.name} --dataset.root={root} "
+                f"--dataset.episode={episode} (SEED: that episode's seed in lerobot-record's "
+                "--robot.outcomes_path file)") if robot == "so101_sim" else ""
         raise ValueError(f"{root} has no episode_seed feature: replay re-simulates an episode "
                          "from the reset seed `so101-sim record` stores, so it needs a dataset "
-                         "recorded by so101-sim")
+                         f"recorded by so101-sim{hint}")
     act_key = "action_executed" if "action_executed" in features else "action"
     df = read_frames(root, ["episode_index", "frame_index", "episode_seed",
                              "observation.state", act_key])
