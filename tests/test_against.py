@@ -147,3 +147,26 @@ def test_sequential_flags_without_against_are_refused(tmp_path, capsys, flags):
     err = capsys.readouterr().err
     assert f"{flags[0]} given without --against" in err and not out.exists()
 
+
+
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--margin", "5"], "margin must be a fraction in [0, 1) (5 points = 0.05), got 5.0"),
+    (["--alpha", "0"], "alpha must be an error rate in (0, 0.5), got 0.0"),
+    (["--indifference", "0"], "indifference must be a fraction > 0"),
+])
+def test_bad_sequential_flags_are_named_before_the_policy_loads(expert_run, tmp_path, capsys,
+                                                                monkeypatch, flags, message):
+    """A checkpoint takes seconds to load; a --margin in points instead of a fraction is
+    refused first, in one line."""
+    import so101_sim.harness
+    from so101_sim.cli import main
+
+    def no_load(*args, **kwargs):
+        raise AssertionError("the policy was loaded before the flags were checked")
+
+    monkeypatch.setattr(so101_sim.harness, "load_policy", no_load)
+    out = tmp_path / "refused"
+    assert main(["eval", "--policy", "expert", "--against", str(expert_run), "--out", str(out),
+                 *flags]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()

@@ -151,6 +151,10 @@ def resolve_eval_flags(args: argparse.Namespace) -> None:
     for key, value in AGAINST_DEFAULTS.items():
         if getattr(args, key) is None:
             setattr(args, key, value)
+    if args.against is not None:  # a bad --margin/--alpha/... is named before the policy loads
+        from so101_sim.harness.sequential import SequentialPairedTest
+
+        SequentialPairedTest(args.margin, args.indifference, args.alpha, args.max_episodes)
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
