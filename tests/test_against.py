@@ -170,3 +170,37 @@ def test_bad_sequential_flags_are_named_before_the_policy_loads(expert_run, tmp_
                  *flags]) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_run_rendered_at_another_size_gets_a_note(tmp_path):
+    """A policy that sees frames can part on small frame differences alone, so --against a RUN
+    rendered at another size says so and names the flag that renders as RUN did; a state-only
+    policy (the expert) gets no such note."""
+    info = PolicyInfo(name="stand_still_eyes", cameras=("front", "side"), image_size=(48, 64),
+                      fingerprint="rest-eyes")
+    policy = StepPolicy(_StandStill, info)
+    quiet = dict(n_envs=2, videos=0, progress=False, report=False, log=lambda _: None)
+    ref = tmp_path / "ref"
+    evaluate(policy, episodes=2, out_dir=ref, image_size=(96, 128), **quiet)
+    lines: list[str] = []
+    result = evaluate_against(policy, ref, max_episodes=2, out_dir=tmp_path / "new",
+                              **{**quiet, "log": lines.append})
+    assert result["config"]["render_size"] == [48, 64]  # the policy's input size, no resize
+    assert lines[-1] == (f"so101-sim eval: note: {ref} rendered the cameras at 96x128, this run "
+                         "at 48x64: frames differ slightly, and some seeds' outcomes may differ "
+                         "for that reason alone, not the policy's; --image-size 96x128 renders "
+                         "as it did")
+    lines.clear()
+    evaluate_against(policy, ref, max_episodes=2, out_dir=tmp_path / "same", image_size=(96, 128),
+                     **{**quiet, "log": lines.append})
+    assert not any("rendered the cameras" in line for line in lines)
+
+
+def test_a_state_only_policy_gets_no_render_note(expert_run, tmp_path):
+    lines: list[str] = []
+    result = evaluate_against("expert", expert_run, max_episodes=2, n_envs=2, videos=1,
+                              image_size=(96, 128), out_dir=tmp_path / "x", progress=False,
+                              report=False, log=lines.append)
+    theirs = json.loads((expert_run / "eval_info.json").read_text())["config"]["render_size"]
+    assert result["config"]["render_size"] == [96, 128] != theirs  # the videos' sizes differ
+    assert not any("rendered the cameras" in line for line in lines)

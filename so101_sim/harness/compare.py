@@ -37,6 +37,7 @@ class RunSide:
     success: dict[int, bool]  # seed -> success
     actions_sha: dict[int, str | None]
     setup: dict[str, Any] = field(default_factory=dict)  # software versions, CPU (if recorded)
+    render_size: tuple[int, int] | None = None  # the cameras' render size, if the policy saw them
 
     @property
     def n_success(self) -> int:
@@ -76,13 +77,24 @@ def load_run(path: str | Path) -> RunSide:
         shas = {int(e["seed"]): e.get("actions_sha") for e in episodes}
         side = RunSide(path, str(cfg["policy"]), str(cfg.get("policy_fingerprint", "")),
                        str(cfg["task"]), cfg.get("task_sha256"), str(cfg.get("images", "?")),
-                       success, shas, {k: cfg[k] for k in SETUP_KEYS if k in cfg})
+                       success, shas, {k: cfg[k] for k in SETUP_KEYS if k in cfg},
+                       seen_render_size(cfg))
     except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"{info_path} is not an so101-sim eval result ({exc!r}); expected "
                          "the eval_info.json that `so101-sim eval` writes") from None
     if not success:
         raise ValueError(f"{info_path} holds no episodes; evaluate at least one")
     return side
+
+
+def seen_render_size(config: dict[str, Any]) -> tuple[int, int] | None:
+    """The size a run rendered its policy's cameras at; None for a state-only policy, whose
+    outcomes no render size touches (its render size is the videos')."""
+    size = config.get("render_size")
+    if not config.get("policy_image_size") or not isinstance(size, list | tuple):
+        return None
+    h, w = (int(x) for x in size)
+    return h, w
 
 
 def missing_info_reason(path: Path) -> str:
