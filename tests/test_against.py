@@ -148,7 +148,6 @@ def test_sequential_flags_without_against_are_refused(tmp_path, capsys, flags):
     assert f"{flags[0]} given without --against" in err and not out.exists()
 
 
-
 @pytest.mark.parametrize(("flags", "message"), [
     (["--margin", "5"], "margin must be a fraction in [0, 1) (5 points = 0.05), got 5.0"),
     (["--alpha", "0"], "alpha must be an error rate in (0, 0.5), got 0.0"),
@@ -174,8 +173,8 @@ def test_bad_sequential_flags_are_named_before_the_policy_loads(expert_run, tmp_
 
 def test_a_run_rendered_at_another_size_gets_a_note(tmp_path):
     """A policy that sees frames can part on small frame differences alone, so --against a RUN
-    rendered at another size says so and names the flag that renders as RUN did; a state-only
-    policy (the expert) gets no such note."""
+    rendered at another size says so and names the flag that renders as RUN did; a RUN of the
+    same size gets none."""
     info = PolicyInfo(name="stand_still_eyes", cameras=("front", "side"), image_size=(48, 64),
                       fingerprint="rest-eyes")
     policy = StepPolicy(_StandStill, info)
@@ -197,6 +196,7 @@ def test_a_run_rendered_at_another_size_gets_a_note(tmp_path):
 
 
 def test_a_state_only_policy_gets_no_render_note(expert_run, tmp_path):
+    """The expert sees no frames, so its runs' render sizes (the videos') touch no outcome."""
     lines: list[str] = []
     result = evaluate_against("expert", expert_run, max_episodes=2, n_envs=2, videos=1,
                               image_size=(96, 128), out_dir=tmp_path / "x", progress=False,
