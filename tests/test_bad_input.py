@@ -237,6 +237,32 @@ def test_bad_cameras_are_named_in_the_flags_syntax(value: str, capsys) -> None:
     assert "(" not in err.splitlines()[-1].split("--cameras")[1]
 
 
+@pytest.mark.parametrize(("argv", "hint"), [
+    (["replay", "--dataset", "d", "--episode", "0"],
+     "DATASET is positional in `so101-sim replay`, with no flag: so101-sim replay d --episode 0"),
+    (["curve", "--run", "r"], "RUN is positional in `so101-sim curve`, with no flag: "
+                              "so101-sim curve r"),
+    (["export", "--checkpoint", "c", "--out", "o"],
+     "CHECKPOINT is positional in `so101-sim export`, with no flag: so101-sim export c --out o"),
+    (["compare", "a", "b", "--outt", "c"], "did you mean --out?"),
+    (["record", "--episodes", "1", "--out", "o", "extra"],
+     "`so101-sim record --help` lists its arguments"),
+])
+def test_an_unknown_argument_is_named_under_its_commands_usage(argv: list[str], hint: str,
+                                                               capsys) -> None:
+    """`replay --dataset D` (train's and explain's spelling) was answered with the top-level
+    usage, which lists commands and none of replay's arguments."""
+    from so101_sim.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"usage: so101-sim {argv[0]} ")
+    assert f"so101-sim {argv[0]}: error: unrecognized arguments: " in err
+    assert hint in err
+
+
 def test_a_curve_refuses_training_seeds_by_its_flag(capsys) -> None:
     """curve has no --allow-train-seeds: the library's hint to pass it was wrong there."""
     from so101_sim.cli import main

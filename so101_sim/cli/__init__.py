@@ -6,7 +6,7 @@ import os
 import sys
 
 from so101_sim.cli.arg_types import parse_camera_map_arg, parse_image_size
-from so101_sim.cli.parser import build_parser
+from so101_sim.cli.parser import build_parser, parse_command_line
 from so101_sim.utils.collector import freeze_for_exit, own_process
 from so101_sim.utils.disk import again_hint, free_space, is_disk_full, set_command
 from so101_sim.workers.ray_connect import CONNECT_TIMEOUT_ENV, signal_exit_code
@@ -17,7 +17,7 @@ __all__ = ["build_parser", "main", "parse_camera_map_arg", "parse_image_size"]
 def main(argv: list[str] | None = None) -> int:
     if argv is None:  # the process is this command (the entry point), not a caller's call
         own_process()
-    args = build_parser().parse_args(argv)
+    args = parse_command_line(argv)
     set_command(["so101-sim", *(sys.argv[1:] if argv is None else argv)])  # disk-full hint
     if getattr(args, "ray_connect_timeout", None) is not None:  # read by workers.ray_connect
         if args.ray_address is None:  # without an address no cluster is waited for

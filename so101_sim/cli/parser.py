@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import difflib
+import sys
 
 from so101_sim.cli import commands
 from so101_sim.cli.arg_types import (
@@ -32,6 +34,45 @@ def add_backend_args(p: argparse.ArgumentParser, count_flag: str) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The `so101-sim` parser, every subcommand on it."""
+    return build_parsers()[0]
+
+
+def parse_command_line(argv: list[str] | None) -> argparse.Namespace:
+    """Parse `so101-sim ARGS`; an unknown argument is named in its command's own usage.
+
+    Plain argparse names it under the top-level usage, which lists commands, not the flags
+    the user was after; and `replay --dataset D` (train's spelling) deserves the fix.
+    """
+    parser, commands_by_name = build_parsers()
+    args, extras = parser.parse_known_args(argv)
+    if extras:
+        command = commands_by_name[args.command]
+        command.error(f"unrecognized arguments: {' '.join(extras)}"
+                      f"{unknown_flag_hint(command, args, extras, argv)}")
+    return args
+
+
+def unknown_flag_hint(command: argparse.ArgumentParser, args: argparse.Namespace,
+                      extras: list[str], argv: list[str] | None) -> str:
+    """'; X is positional here: <the line without the flag>' or '; did you mean --y?'."""
+    positionals = {a.dest for a in command._actions if not a.option_strings}
+    flags = [s for a in command._actions for s in a.option_strings if s.startswith("--")]
+    for extra in extras:
+        name = extra.removeprefix("--").replace("-", "_")
+        if extra.startswith("--") and name in positionals:
+            words = list(sys.argv[1:] if argv is None else argv)
+            words.remove(extra)  # what is left parsed with the value as the positional
+            return (f"; {name.upper()} is positional in `so101-sim {args.command}`, with no "
+                    f"flag: so101-sim {' '.join(words)}")
+        close = difflib.get_close_matches(extra.split("=")[0], flags, n=1, cutoff=0.75)
+        if extra.startswith("-") and close:
+            return f"; did you mean {close[0]}? (`so101-sim {args.command} --help` lists them)"
+    return f"; `so101-sim {args.command} --help` lists its arguments"
+
+
+def build_parsers() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
+    """The top-level parser and each command's own, by name."""
     parser = argparse.ArgumentParser(
         prog="so101-sim", formatter_class=argparse.RawDescriptionHelpFormatter,
         description="SO-101 arm in MuJoCo: record scripted demonstrations, train a policy on "
@@ -317,4 +358,4 @@ def build_parser() -> argparse.ArgumentParser:
     xp.add_argument("--out", default=None, help="output folder for explain.html and "
                     "explain.json (default outputs/explain/<policy>-ep<E>-f<F>)")
     xp.set_defaults(func=commands.cmd_explain)
-    return parser
+    return parser, dict(sub.choices)
