@@ -72,6 +72,17 @@ def test_a_task_the_demos_never_showed_gets_one_line(tmp_path: Path) -> None:
     assert note.startswith(f"note: lift, stack are not tasks {pp} was trained on (its demos: ")
 
 
+def test_the_shipped_policy_says_it_learned_pick_place() -> None:
+    """Its sidecar predated these keys, so `eval --task lift` of it said nothing before
+    scoring about 0. It was trained on `record` of the default task, training seeds 0..199
+    (README's recipe)."""
+    shipped = Path(__file__).parents[1] / "policy" / "pick_place_diffusion"
+    assert default_task(str(shipped), "lift") == "pick_place"
+    assert unseen_task_note(shipped, ["pick_place"]) is None
+    note = unseen_task_note(shipped, ["lift"])
+    assert note is not None and "expect a low rate" in note
+
+
 def test_curve_defaults_to_the_task_of_the_run(tmp_path: Path, monkeypatch, capsys) -> None:
     run = tmp_path / "run"
     for step in (2, 4):
