@@ -245,13 +245,16 @@ def test_bad_cameras_are_named_in_the_flags_syntax(value: str, capsys) -> None:
     (["export", "--checkpoint", "c", "--out", "o"],
      "CHECKPOINT is positional in `so101-sim export`, with no flag: so101-sim export c --out o"),
     (["compare", "a", "b", "--outt", "c"], "did you mean --out?"),
+    (["eval", "--polcy", "p", "--out", "o"], "--polcy; did you mean --policy?"),
+    (["train", "--datset", "d", "--out", "o"], "--datset; did you mean --dataset?"),
     (["record", "--episodes", "1", "--out", "o", "extra"],
      "`so101-sim record --help` lists its arguments"),
 ])
 def test_an_unknown_argument_is_named_under_its_commands_usage(argv: list[str], hint: str,
                                                                capsys) -> None:
     """`replay --dataset D` (train's and explain's spelling) was answered with the top-level
-    usage, which lists commands and none of replay's arguments."""
+    usage, which lists commands and none of replay's arguments; `eval --polcy P` only with
+    "the following arguments are required: --policy"."""
     from so101_sim.cli import main
 
     with pytest.raises(SystemExit) as exc:

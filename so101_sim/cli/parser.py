@@ -42,33 +42,43 @@ def parse_command_line(argv: list[str] | None) -> argparse.Namespace:
     """Parse `so101-sim ARGS`; an unknown argument is named in its command's own usage.
 
     Plain argparse names it under the top-level usage, which lists commands, not the flags
-    the user was after; and `replay --dataset D` (train's spelling) deserves the fix.
+    the user was after, and a misspelt required flag (`eval --polcy P`) only as the flag that
+    is missing. `replay --dataset D` (train's spelling) also gets the line that works.
     """
     parser, commands_by_name = build_parsers()
-    args, extras = parser.parse_known_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    command = commands_by_name.get(words[0]) if words else None
+    if command is not None:  # before argparse, which would first miss the flag meant
+        flags = [s for a in command._actions for s in a.option_strings]
+        rest = words[1:words.index("--")] if "--" in words else words[1:]
+        unknown = [w for w in rest if w.startswith("--")
+                   and not any(f.startswith(w.split("=")[0]) for f in flags)]
+        if unknown:
+            command.error(unrecognized(command, words, unknown))
+    args, extras = parser.parse_known_args(words)
     if extras:
         command = commands_by_name[args.command]
-        command.error(f"unrecognized arguments: {' '.join(extras)}"
-                      f"{unknown_flag_hint(command, args, extras, argv)}")
+        command.error(unrecognized(command, [args.command, *words[1:]], extras))
     return args
 
 
-def unknown_flag_hint(command: argparse.ArgumentParser, args: argparse.Namespace,
-                      extras: list[str], argv: list[str] | None) -> str:
-    """'; X is positional here: <the line without the flag>' or '; did you mean --y?'."""
+def unrecognized(command: argparse.ArgumentParser, words: list[str], extras: list[str]) -> str:
+    """The error for `extras`: '; X is positional here: <the line without the flag>', or
+    '; did you mean --y?', or where the command's arguments are listed."""
+    name = words[0]
+    message = f"unrecognized arguments: {' '.join(extras)}; "
     positionals = {a.dest for a in command._actions if not a.option_strings}
     flags = [s for a in command._actions for s in a.option_strings if s.startswith("--")]
     for extra in extras:
-        name = extra.removeprefix("--").replace("-", "_")
-        if extra.startswith("--") and name in positionals:
-            words = list(sys.argv[1:] if argv is None else argv)
-            words.remove(extra)  # what is left parsed with the value as the positional
-            return (f"; {name.upper()} is positional in `so101-sim {args.command}`, with no "
-                    f"flag: so101-sim {' '.join(words)}")
+        dest = extra.removeprefix("--").replace("-", "_")
+        if extra.startswith("--") and dest in positionals:
+            fixed = [w for w in words if w != extra]  # the value then lands on the positional
+            return (f"{message}{dest.upper()} is positional in `so101-sim {name}`, with no "
+                    f"flag: so101-sim {' '.join(fixed)}")
         close = difflib.get_close_matches(extra.split("=")[0], flags, n=1, cutoff=0.75)
         if extra.startswith("-") and close:
-            return f"; did you mean {close[0]}? (`so101-sim {args.command} --help` lists them)"
-    return f"; `so101-sim {args.command} --help` lists its arguments"
+            return f"{message}did you mean {close[0]}? (`so101-sim {name} --help` lists them)"
+    return f"{message}`so101-sim {name} --help` lists its arguments"
 
 
 def build_parsers() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
