@@ -105,6 +105,18 @@ def test_existing_dataset_needs_resume(dataset: Path) -> None:
         record(dataset, 3, image_size=SMALL, progress=False)
 
 
+def test_recording_prints_no_datasets_map_bar(tmp_path: Path, capfd) -> None:
+    """lerobot's save_episode runs a `datasets` map that printed a "Map: 100%|..." bar per
+    episode through record's own bar. The bars stay as they were for the caller."""
+    from datasets.utils import logging as ds_logging
+
+    ds_logging.enable_progress_bar()  # as in a fresh process
+    record(tmp_path / "ds", 1, image_size=SMALL, progress=False)
+    out, err = capfd.readouterr()
+    assert "Map" not in out + err
+    assert ds_logging.is_progress_bar_enabled()
+
+
 def test_resume_keeps_the_datasets_task_and_image_size(tmp_path: Path, capsys) -> None:
     """`record --resume` without --task/--image-size continues the dataset as it is; before,
     it recorded 480x640 or refused, and another --task was dropped in silence (the stored

@@ -14,6 +14,8 @@ import dataclasses
 import json
 import os
 import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -199,7 +201,8 @@ class Opened:
                 shutil.copy2(video["path"], tmp / "episode.mp4")
             ready[key] = (tmp / "episode.mp4", video["stats"])
         self.videos.ready = ready
-        self.ds.save_episode()
+        with quiet_datasets():
+            self.ds.save_episode()
 
     def checkpoint(self, reopen: bool) -> None:
         """Finalize, record the state as the one a kill comes back to, reopen if asked."""
@@ -211,6 +214,22 @@ class Opened:
         crash_point("checkpoint")
         if reopen:
             self.reopen()
+
+
+@contextmanager
+def quiet_datasets() -> Iterator[None]:
+    """Hide the ``datasets`` "Map:" progress bar save_episode prints per episode, which cut
+    through `record`'s own bar (lerobot's loader switches the bars back on whenever it reads
+    a parquet file, so per write)."""
+    from datasets.utils import logging as ds_logging
+
+    was = ds_logging.is_progress_bar_enabled()
+    ds_logging.disable_progress_bar()
+    try:
+        yield
+    finally:
+        if was:
+            ds_logging.enable_progress_bar()
 
 
 def _use_worker_videos(ds: Any) -> WorkerVideos:

@@ -21,8 +21,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
-from collections.abc import Callable, Iterator
-from contextlib import ExitStack, contextmanager
+from collections.abc import Callable
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -207,9 +207,8 @@ class RolloutSink:
             seed = self.seeds[self.next]
             with self.interrupts.deferred():
                 self.writing = True  # an error from here may leave lerobot's writer mid-episode
-                with _quiet_datasets():
-                    self.opened.write(self.spool.load(seed), self.spec.description,
-                                      self.image_size)
+                self.opened.write(self.spool.load(seed), self.spec.description,
+                                  self.image_size)
                 self.stored.add(seed)
                 self.next += 1
                 self.since_checkpoint += 1
@@ -267,18 +266,3 @@ def open_sink(sink: RolloutSink, resume: bool) -> None:
     except BaseException:
         sink._stack.close()
         raise
-
-
-@contextmanager
-def _quiet_datasets() -> Iterator[None]:
-    """Hide the ``datasets`` progress bar lerobot's save_episode prints (per write: lerobot's
-    own loader switches the bars back on whenever it reads a parquet file)."""
-    from datasets.utils import logging as ds_logging
-
-    was = ds_logging.is_progress_bar_enabled()
-    ds_logging.disable_progress_bar()
-    try:
-        yield
-    finally:
-        if was:
-            ds_logging.enable_progress_bar()
