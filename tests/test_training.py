@@ -744,3 +744,15 @@ def test_oversample_closes_weights_the_draws_and_is_kept_on_resume(
     done = train(dataset, tmp_path / "w", preset_name=str(tiny), steps=2, resume=True,
                  oversample_closes=3.0, **fixed)
     assert done.step == 2
+
+
+def test_a_checkpoint_is_named_after_its_run(tmp_path: Path) -> None:
+    """`train --out RUN` ends with RUN/pretrained_model: eval named every such policy
+    "pretrained_model", in its summary line, its default --out folder and compare's tables."""
+    from so101_sim.train.checkpoint import checkpoint_name
+
+    run = tmp_path / "pp200"
+    assert checkpoint_name(run / "pretrained_model") == "pp200"
+    assert checkpoint_name(run / "checkpoints" / "step_0000500" / "pretrained_model") == \
+        "pp200-step_0000500"
+    assert checkpoint_name(tmp_path / "shipped_policy") == "shipped_policy"

@@ -146,10 +146,13 @@ def eval_seeds_note(dataset_dir: Path, info: dict[str, Any]) -> str | None:
 
 
 def checkpoint_name(path: Path) -> str:
-    """<run>-<step> for lerobot-train's .../<run>/checkpoints/<step>/pretrained_model."""
+    """<run>-<step> for lerobot-train's .../<run>/checkpoints/<step>/pretrained_model, <run>
+    for `train`'s final <run>/pretrained_model, else the folder's own name."""
     p = path.resolve()
     if p.name == "pretrained_model" and p.parent.parent.name == "checkpoints":
         return f"{p.parents[2].name}-{p.parent.name}"
+    if p.name == "pretrained_model" and p.parent.name:
+        return p.parent.name  # every run's final policy would otherwise share one name
     return p.name
 
 
