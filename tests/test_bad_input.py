@@ -565,6 +565,18 @@ def test_every_cli_option_says_what_it_does() -> None:
     assert bare == []
 
 
+def test_every_cli_default_is_in_its_help() -> None:
+    """An option that has a default says what it is (`eval --videos` wrote 2 mp4s unasked,
+    `curve --episodes` ran 32 seeds, `record --workers` used 1 worker: none said so)."""
+    from so101_sim.cli.parser import build_parsers
+
+    unsaid = [f"{name} {a.option_strings[0]}={a.default!r}"
+              for name, p in build_parsers()[1].items() for a in p._actions
+              if a.option_strings and a.default not in (None, False, [], "==SUPPRESS==")
+              and "default" not in a.help]
+    assert unsaid == []
+
+
 def test_the_typical_run_in_the_top_level_help_parses() -> None:
     """Each command `so101-sim --help` shows as a typical run is accepted as written."""
     from so101_sim.cli.parser import build_parser

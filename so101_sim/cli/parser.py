@@ -99,12 +99,14 @@ def build_parsers() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argumen
 
     demo = sub.add_parser("demo", help="roll the env with a fixed action sequence; write an mp4 "
                                        "of front|side and one PNG per camera")
-    demo.add_argument("--out", default="outputs/demo", help="output folder")
+    demo.add_argument("--out", default="outputs/demo",
+                      help="output folder (default outputs/demo)")
     demo.add_argument("--steps", type=positive_int, default=None,
                       help="env steps of the rollout (default 240; not with --grid)")
     demo.add_argument("--seed", type=nonnegative_int, default=0,
                       help="reset seed of the rollout; with --grid, of the first tile (default 0)")
-    demo.add_argument("--task", default="pick_place", help="task name in envs/ or a .toml path")
+    demo.add_argument("--task", default="pick_place",
+                      help="task name in envs/ or a .toml path (default pick_place)")
     demo.add_argument("--image-size", type=parse_image_size, default=None,
                       help="HEIGHTxWIDTH of each camera (default 480x640; 240x320 with --grid)")
     demo.add_argument("--grid", default=None, metavar="ROWSxCOLS",
@@ -134,8 +136,8 @@ def build_parsers() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argumen
                      help="continue an existing dataset up to --episodes without repeating a seed")
     rec.add_argument("--workers", type=positive_int, default=1,
                      help="workers that simulate, render and encode in parallel (processes, "
-                          "or Ray actors with --backend ray; one per CPU core is best); "
-                          "episodes are still stored in seed order")
+                          "or Ray actors with --backend ray; one per CPU core is best; default "
+                          "1); episodes are still stored in seed order")
     rec.add_argument("--dart-noise", type=float, default=0.0, metavar="STD",
                      help="DART noise: execute the expert's action plus Gaussian noise of this "
                           "std (degrees; gripper 0..100 units) while `action` keeps the clean "
@@ -168,7 +170,8 @@ def build_parsers() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argumen
     tr = sub.add_parser("train", help="train a Diffusion Policy (or ACT) preset on a recorded "
                                       "dataset (EMA weights, lerobot checkpoint format)")
     tr.add_argument("--preset", default="cpu",
-                    help="preset name in policy/presets (cpu, seed, act) or a .toml path")
+                    help="preset name in policy/presets (cpu, seed, act) or a .toml path "
+                         "(default cpu)")
     tr.add_argument("--dataset", required=True, help="LeRobotDataset folder (so101-sim record)")
     tr.add_argument("--out", required=True, help="run folder (checkpoints, log, final policy)")
     tr.add_argument("--steps", type=positive_int, default=None,
@@ -209,7 +212,8 @@ def build_parsers() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argumen
     cu = sub.add_parser("curve", help="evaluate a training run's saved checkpoints on the same "
                                       "evaluation seeds: success against step and hours")
     cu.add_argument("run", help="the --out folder of `so101-sim train`")
-    cu.add_argument("--episodes", type=positive_int, default=32, help="seeds per checkpoint")
+    cu.add_argument("--episodes", type=positive_int, default=32,
+                    help="seeds per checkpoint (default 32)")
     cu.add_argument("--every", type=nonnegative_int, default=0,
                     help="only checkpoints whose step is a multiple of this (default: all)")
     cu.add_argument("--n-envs", type=positive_int, default=16,
@@ -272,7 +276,7 @@ def build_parsers() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argumen
     ev.add_argument("--out", default=None,
                     help="output folder (default outputs/eval/<policy>-<task>-<time>)")
     ev.add_argument("--videos", type=nonnegative_int, default=2,
-                    help="mp4s of the first V episodes")
+                    help="mp4s of the first V episodes (default 2; 0 for none)")
     ev.add_argument("--image-size", type=parse_image_size, default=None,
                     help="render size HEIGHTxWIDTH (default: the smallest size whose frames, "
                          "resized like training, match the faithful ones within a tolerance "
