@@ -280,14 +280,29 @@ def cmd_curve(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from so101_sim.harness.compare import compare_runs, summary_lines, write_comparison
+    from so101_sim.harness.compare import (
+        compare_runs,
+        suite_tasks,
+        summary_lines,
+        write_comparison,
+    )
 
-    r = compare_runs(args.run_a, args.run_b)
     out = args.out or (Path("outputs/compare") / f"{Path(args.run_a).name}-vs-"
                                                   f"{Path(args.run_b).name}")
-    for line in summary_lines(r):
+    if suite_tasks(args.run_a) is not None or suite_tasks(args.run_b) is not None:
+        from so101_sim.harness.compare_suite import (
+            compare_suites,
+            suite_summary_lines,
+            write_suite_comparison,
+        )
+
+        r, lines, write = (compare_suites(args.run_a, args.run_b), suite_summary_lines,
+                           write_suite_comparison)
+    else:
+        r, lines, write = compare_runs(args.run_a, args.run_b), summary_lines, write_comparison
+    for line in lines(r):
         print(line)
-    json_path, md_path = write_comparison(r, out)
+    json_path, md_path = write(r, out)
     print(f"-> {json_path}, {md_path}")
     return 0
 

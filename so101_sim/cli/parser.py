@@ -344,7 +344,8 @@ def build_parsers() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argumen
     cmp = sub.add_parser("compare", help="compare two eval folders seed by seed: both rates, "
                                          "the paired table, exact McNemar p, the difference "
                                          "with its interval")
-    cmp.add_argument("run_a", help="an `so101-sim eval --out` folder (A)")
+    cmp.add_argument("run_a", help="an `so101-sim eval --out` folder (A); two `eval --task "
+                                   "a,b` folders are compared task by task, then pooled")
     cmp.add_argument("run_b", help="another one over the same seeds and task (B)")
     cmp.add_argument("--out", default=None, help="folder for compare.json and compare.md "
                                                  "(default outputs/compare/<A>-vs-<B>)")

@@ -63,6 +63,10 @@ def load_run(path: str | Path) -> RunSide:
     except (ValueError, UnicodeDecodeError) as exc:
         raise ValueError(f"{info_path} is not JSON ({exc}); expected the eval_info.json that "
                          "`so101-sim eval` writes") from None
+    if suite_tasks(path) is not None:
+        raise ValueError(f"{path} is an `so101-sim eval --task a,b` folder, one subfolder per "
+                         f"task; compare it with another such folder (compare_suites), or "
+                         f"compare one task's subfolder, e.g. {path / suite_tasks(path)[0]}")
     if isinstance(info, dict) and "overall" in info and "per_episode" not in info:
         overall = info["overall"] if isinstance(info["overall"], dict) else {}
         raise ValueError(
@@ -85,6 +89,21 @@ def load_run(path: str | Path) -> RunSide:
     if not success:
         raise ValueError(f"{info_path} holds no episodes; evaluate at least one")
     return side
+
+
+def suite_tasks(path: str | Path) -> list[str] | None:
+    """The tasks of an ``eval --task a,b`` folder, whose eval_info.json groups one subfolder
+    per task (None for any other folder)."""
+    try:
+        info = json.loads((Path(path) / INFO).read_text(encoding="utf-8"))
+    except (OSError, ValueError, UnicodeDecodeError):
+        return None
+    config = info.get("config") if isinstance(info, dict) else None
+    tasks = config.get("tasks") if isinstance(config, dict) else None
+    if "per_episode" in info or not isinstance(tasks, list) or not tasks \
+            or not all(isinstance(t, str) and t for t in tasks):
+        return None
+    return tasks
 
 
 def seen_render_size(config: dict[str, Any]) -> tuple[int, int] | None:
