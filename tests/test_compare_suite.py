@@ -80,6 +80,9 @@ def test_a_suite_against_one_task_names_the_pair_that_works(tmp_path, two_suites
     assert "lerobot-eval" not in err
     with pytest.raises(ValueError, match=r"eval --task a,b` folder"):
         load_run(a)
+    assert main(["eval", "--policy", "expert", "--against", str(a),
+                 "--out", str(tmp_path / "e")]) == 2
+    assert f"give one task's subfolder, e.g. {a / 'lift'}" in capsys.readouterr().err
 
 
 def test_suites_with_other_tasks_compare_the_shared_ones(tmp_path, capsys):

@@ -65,8 +65,8 @@ def load_run(path: str | Path) -> RunSide:
                          "`so101-sim eval` writes") from None
     if suite_tasks(path) is not None:
         raise ValueError(f"{path} is an `so101-sim eval --task a,b` folder, one subfolder per "
-                         f"task; compare it with another such folder (compare_suites), or "
-                         f"compare one task's subfolder, e.g. {path / suite_tasks(path)[0]}")
+                         f"task: give one task's subfolder, e.g. {path / suite_tasks(path)[0]} "
+                         "(only `so101-sim compare` takes two such folders whole)")
     if isinstance(info, dict) and "overall" in info and "per_episode" not in info:
         overall = info["overall"] if isinstance(info["overall"], dict) else {}
         raise ValueError(
