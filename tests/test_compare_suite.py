@@ -103,3 +103,16 @@ def test_a_suite_against_itself_warns_once(tmp_path, two_suites, capsys):
     assert main(["compare", str(a), str(a), "--out", str(tmp_path / "cmp")]) == 0
     warnings = [ln for ln in capsys.readouterr().out.splitlines() if "warning" in ln]
     assert len(warnings) == 1 and f"same folder ({a})" in warnings[0]
+
+
+def test_an_interrupted_suite_is_named_as_one(tmp_path, two_suites, capsys):
+    """A suite killed before its last task has per-task folders and no eval_info.json of its
+    own: it was taken for one task's run ("compare that task's subfolder")."""
+    a = two_suites[0]
+    (a / SUITE_INFO).unlink()
+    (a / "stack" / "eval_info.json").unlink()
+    (a / "stack" / "episodes.jsonl").write_text("")
+    assert main(["compare", str(a), str(two_suites[1])]) == 2
+    err = capsys.readouterr().err
+    assert (f"{a} has no eval_info.json yet: it holds the tasks stack of an interrupted `eval "
+            f"--task a,b`; finish it by running its command again with --out {a} --resume") in err

@@ -125,6 +125,11 @@ def missing_info_reason(path: Path) -> str:
     if (path / EPISODES).is_file():
         return (f"has no {INFO} yet: its eval was interrupted; finish it by running its "
                 f"command again with --out {path} --resume")
+    tasks = sorted(p.parent.name for p in path.glob(f"*/{EPISODES}"))
+    if tasks:  # `eval --task a,b` writes the suite's file after its last task
+        return (f"has no {INFO} yet: it holds the tasks {', '.join(tasks)} of an interrupted "
+                f"`eval --task a,b`; finish it by running its command again with --out {path} "
+                "--resume")
     return f"has no {INFO}"
 
 

@@ -37,6 +37,7 @@ def compare_suites(run_a: str | Path, run_b: str | Path,
     a, b = Path(run_a), Path(run_b)
     tasks_a, tasks_b = suite_tasks(a), suite_tasks(b)
     if tasks_a is None or tasks_b is None:
+        load_run(b if tasks_a is not None else a)  # an unreadable other folder: its own error
         raise ValueError(mixed_error(a, b, tasks_a, tasks_b))
     shared = [t for t in tasks_a if t in tasks_b]
     if not shared:
@@ -68,10 +69,7 @@ def mixed_error(a: Path, b: Path, tasks_a: list[str] | None,
                 tasks_b: list[str] | None) -> str:
     """A suite folder against a single task's: the command that pairs the matching task."""
     suite, other, tasks = (a, b, tasks_a) if tasks_a is not None else (b, a, tasks_b)
-    try:
-        task = load_run(other).task
-    except (OSError, ValueError):
-        task = None
+    task = load_run(other).task
     task = task if task in (tasks or []) else (tasks or ["TASK"])[0]
     pair = (suite / task, other) if suite == a else (other, suite / task)
     return (f"{suite} is an `so101-sim eval --task a,b` folder (one subfolder per task) and "
