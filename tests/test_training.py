@@ -413,7 +413,7 @@ def test_init_from_starts_a_new_run_from_a_checkpoint(dataset: Path, tiny: Path,
     from so101_sim.harness.export import export_policy
 
     card = (export_policy(resumed.pretrained_dir, tmp_path / "shipped") / "README.md").read_text()
-    assert "| started from | `pretrained_model`, step 2 (model.safetensors sha256" in card
+    assert "| started from | `base`, step 2 (model.safetensors sha256" in card
     with pytest.raises(TrainError, match=r"--resume continues .* drop one of them"):
         train(dataset, tmp_path / "tuned", preset_name=str(tiny), steps=4, resume=True,
               init_from=base.pretrained_dir, **fixed)
