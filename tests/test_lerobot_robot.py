@@ -213,6 +213,34 @@ def test_bad_config_values_are_named(tmp_path):
         assert getattr(caught.value, TAG) == "--robot.type=so101_sim"
 
 
+def test_a_policy_that_takes_other_frames_is_named_at_connect(tmp_path, monkeypatch, caplog):
+    """`lerobot-rollout --policy.path=policy/pick_place_diffusion --robot.type=so101_sim`
+    without the image flags fed the 60x80 policy 480x640 frames, which it centre-crops to
+    54x72: every episode failed and nothing said why."""
+    from lerobot_robot_so101_sim.policy_check import size_warning
+
+    flags = ("--robot.image_height=60 --robot.image_width=80 --robot.render_height=480 "
+             "--robot.render_width=640")
+    for argv in (["lerobot-rollout", f"--policy.path={SHIPPED}"],
+                 ["robot_client", "--pretrained_name_or_path", str(SHIPPED)]):
+        warning = size_warning(argv, (480, 640), ["front", "side"])
+        assert warning is not None and warning.endswith(f"add {flags}")
+        assert "front 60x80, side 60x80" in warning and "sends 480x640" in warning
+    assert size_warning([f"--policy.path={SHIPPED}"], (60, 80), ["front", "side"]) is None
+    assert size_warning(["--policy.path=lerobot/some_hub_id"], (480, 640), ["front"]) is None
+    assert size_warning(["lerobot-teleoperate"], (480, 640), ["front"]) is None
+
+    monkeypatch.setattr(sys, "argv", ["lerobot-rollout", f"--policy.path={SHIPPED}"])
+    robot = _robot(tmp_path)  # 48x64 frames
+    with caplog.at_level("WARNING"):
+        robot.connect()
+    robot.disconnect()
+    assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == [
+        f"{robot}: {SHIPPED} takes camera frames of front 60x80, side 60x80, and this robot "
+        "sends 48x64: nothing on the way resizes them, so the policy would see the wrong "
+        f"picture; add {flags}"]
+
+
 def test_the_expert_finds_its_robot_by_id(tmp_path):
     """Two sim robots in one process: the expert needs --teleop.robot_id, an unknown id names
     the connected ones, and a second robot with a taken id is refused without unregistering

@@ -18,6 +18,7 @@ import logging
 import math
 import os
 import signal
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -30,6 +31,7 @@ from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnected
 from lerobot_robot_so101_sim import registry
 from lerobot_robot_so101_sim.config import ROBOT_TYPE, SO101SimConfig
 from lerobot_robot_so101_sim.dataset_events import unwatch_datasets, watch_datasets
+from lerobot_robot_so101_sim.policy_check import size_warning
 from so101_sim.tasks import load_task
 from so101_sim.utils.units import FEATURE_NAMES
 
@@ -130,6 +132,9 @@ class SO101Sim(Robot):
         logger.info("%s connected: task %s, cameras %s at %dx%d%s, %s", self, self.task.name,
                     ",".join(self.camera_names), *self.config.image_size, self._render_note(),
                     "realtime" if self.config.realtime else "not paced (realtime=false)")
+        warning = size_warning(sys.argv, self.config.image_size, self.camera_names)
+        if warning:  # the policy was built apart from the robot: its frames would be wrong
+            logger.warning("%s: %s", self, warning)
 
     def calibrate(self) -> None:
         """Nothing to calibrate: the sim's joints are LeRobot's units by construction."""

@@ -1,0 +1,69 @@
+"""One warning when the policy on the command line takes frames of another size than the sim
+robot sends.
+
+lerobot-rollout, lerobot-record with ``--policy.path`` and the async robot client build the
+policy and the robot apart, and neither lerobot nor the policy's processors resize camera
+frames: the shipped 60x80 policy given the robot's default 480x640 frames centre-crops 54x72
+out of their middle and fails every episode without a word. The robot cannot see the policy,
+so it reads the path from the command line and the policy's ``config.json`` (as data), and
+names the flags that fit. A hub id or an unreadable folder is left alone.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+POLICY_FLAGS = ("--policy.path", "--pretrained_name_or_path")  # lerobot CLIs, robot_client
+
+
+def policy_path(argv: Sequence[str]) -> Path | None:
+    """The local policy folder named on a lerobot command line, if any."""
+    for i, word in enumerate(argv):
+        for flag in POLICY_FLAGS:
+            value = (word.split("=", 1)[1] if word.startswith(flag + "=")
+                     else argv[i + 1] if word == flag and i + 1 < len(argv) else None)
+            if value and (Path(value).expanduser() / "config.json").is_file():
+                return Path(value).expanduser()
+    return None
+
+
+def input_sizes(policy: Path) -> dict[str, tuple[int, int]]:
+    """{camera: (height, width)} of the policy's image inputs (C, H, W in its config)."""
+    try:
+        features = json.loads((policy / "config.json").read_text())["input_features"]
+        return {key.rsplit(".", 1)[-1]: (int(f["shape"][1]), int(f["shape"][2]))
+                for key, f in features.items() if f.get("type") == "VISUAL"}
+    except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError):
+        return {}
+
+
+def trained_size(policy: Path) -> tuple[int, int] | None:
+    """The frame size of the policy's demos, if so101-sim trained it."""
+    try:
+        h, w = json.loads((policy / "so101_sim_train.json").read_text())["dataset_image_size"]
+        return int(h), int(w)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def size_warning(argv: Sequence[str], image_size: tuple[int, int],
+                 cameras: Sequence[str]) -> str | None:
+    """The warning for a policy whose image inputs are not `image_size`, else None."""
+    policy = policy_path(argv)
+    if policy is None:
+        return None
+    sizes = {cam: hw for cam, hw in input_sizes(policy).items() if cam in cameras}
+    wrong = {cam: hw for cam, hw in sizes.items() if hw != tuple(image_size)}
+    if not wrong:
+        return None
+    h, w = next(iter(wrong.values()))
+    flags = f"--robot.image_height={h} --robot.image_width={w}"
+    render = trained_size(policy)
+    if render is not None and render != (h, w):  # and render as its demos were, resized
+        flags += f" --robot.render_height={render[0]} --robot.render_width={render[1]}"
+    shown = ", ".join(f"{cam} {hh}x{ww}" for cam, (hh, ww) in wrong.items())
+    return (f"{policy} takes camera frames of {shown}, and this robot sends "
+            f"{image_size[0]}x{image_size[1]}: nothing on the way resizes them, so the policy "
+            f"would see the wrong picture; add {flags}")
