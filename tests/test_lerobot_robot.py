@@ -221,10 +221,12 @@ def test_a_policy_that_takes_other_frames_is_named_at_connect(tmp_path, monkeypa
 
     flags = ("--robot.image_height=60 --robot.image_width=80 --robot.render_height=480 "
              "--robot.render_width=640")
-    for argv in (["lerobot-rollout", f"--policy.path={SHIPPED}"],
-                 ["robot_client", "--pretrained_name_or_path", str(SHIPPED)]):
+    for argv, fate in ((["lerobot-rollout", f"--policy.path={SHIPPED}"],
+                        "nothing on the way resizes them"),
+                       (["robot_client", "--pretrained_name_or_path", str(SHIPPED)],
+                        "the policy server resizes them by plain bilinear interpolation")):
         warning = size_warning(argv, (480, 640), ["front", "side"])
-        assert warning is not None and warning.endswith(f"add {flags}")
+        assert warning is not None and warning.endswith(f"add {flags}") and fate in warning
         assert "front 60x80, side 60x80" in warning and "sends 480x640" in warning
     assert size_warning([f"--policy.path={SHIPPED}"], (60, 80), ["front", "side"]) is None
     assert size_warning(["--policy.path=lerobot/some_hub_id"], (480, 640), ["front"]) is None

@@ -18,14 +18,14 @@ from pathlib import Path
 POLICY_FLAGS = ("--policy.path", "--pretrained_name_or_path")  # lerobot CLIs, robot_client
 
 
-def policy_path(argv: Sequence[str]) -> Path | None:
-    """The local policy folder named on a lerobot command line, if any."""
+def policy_path(argv: Sequence[str]) -> tuple[Path, str] | None:
+    """The local policy folder named on a lerobot command line and its flag, if any."""
     for i, word in enumerate(argv):
         for flag in POLICY_FLAGS:
             value = (word.split("=", 1)[1] if word.startswith(flag + "=")
                      else argv[i + 1] if word == flag and i + 1 < len(argv) else None)
             if value and (Path(value).expanduser() / "config.json").is_file():
-                return Path(value).expanduser()
+                return Path(value).expanduser(), flag
     return None
 
 
@@ -51,9 +51,10 @@ def trained_size(policy: Path) -> tuple[int, int] | None:
 def size_warning(argv: Sequence[str], image_size: tuple[int, int],
                  cameras: Sequence[str]) -> str | None:
     """The warning for a policy whose image inputs are not `image_size`, else None."""
-    policy = policy_path(argv)
-    if policy is None:
+    found = policy_path(argv)
+    if found is None:
         return None
+    policy, flag = found
     sizes = {cam: hw for cam, hw in input_sizes(policy).items() if cam in cameras}
     wrong = {cam: hw for cam, hw in sizes.items() if hw != tuple(image_size)}
     if not wrong:
@@ -64,6 +65,8 @@ def size_warning(argv: Sequence[str], image_size: tuple[int, int],
     if render is not None and render != (h, w):  # and render as its demos were, resized
         flags += f" --robot.render_height={render[0]} --robot.render_width={render[1]}"
     shown = ", ".join(f"{cam} {hh}x{ww}" for cam, (hh, ww) in wrong.items())
+    fate = ("the policy server resizes them by plain bilinear interpolation, not as the demos "
+            "were resized" if flag == "--pretrained_name_or_path" else
+            "nothing on the way resizes them, so the policy would see the wrong picture")
     return (f"{policy} takes camera frames of {shown}, and this robot sends "
-            f"{image_size[0]}x{image_size[1]}: nothing on the way resizes them, so the policy "
-            f"would see the wrong picture; add {flags}")
+            f"{image_size[0]}x{image_size[1]}: {fate}; add {flags}")
