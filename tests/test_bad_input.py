@@ -242,6 +242,8 @@ def test_bad_cameras_are_named_in_the_flags_syntax(value: str, capsys) -> None:
      "DATASET is positional in `so101-sim replay`, with no flag: so101-sim replay d --episode 0"),
     (["curve", "--run", "r"], "RUN is positional in `so101-sim curve`, with no flag: "
                               "so101-sim curve r"),
+    (["curve", "--run=r", "--episodes", "2"], "RUN is positional in `so101-sim curve`, with "
+                                              "no flag: so101-sim curve r --episodes 2"),
     (["export", "--checkpoint", "c", "--out", "o"],
      "CHECKPOINT is positional in `so101-sim export`, with no flag: so101-sim export c --out o"),
     (["compare", "a", "b", "--outt", "c"], "did you mean --out?"),

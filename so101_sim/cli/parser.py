@@ -63,19 +63,20 @@ def parse_command_line(argv: list[str] | None) -> argparse.Namespace:
 
 
 def unrecognized(command: argparse.ArgumentParser, words: list[str], extras: list[str]) -> str:
-    """The error for `extras`: '; X is positional here: <the line without the flag>', or
-    '; did you mean --y?', or where the command's arguments are listed."""
+    """The error for `extras`, with what helps most: for a positional given as a flag, the
+    command line without the flag; else the flag nearest a misspelt one; else --help."""
     name = words[0]
     message = f"unrecognized arguments: {' '.join(extras)}; "
     positionals = {a.dest for a in command._actions if not a.option_strings}
     flags = [s for a in command._actions for s in a.option_strings if s.startswith("--")]
     for extra in extras:
-        dest = extra.removeprefix("--").replace("-", "_")
-        if extra.startswith("--") and dest in positionals:
-            fixed = [w for w in words if w != extra]  # the value then lands on the positional
+        flag, _, value = extra.partition("=")
+        dest = flag.removeprefix("--").replace("-", "_")
+        if flag.startswith("--") and dest in positionals:  # `--dataset D` or `--dataset=D`
+            fixed = [value if w == extra else w for w in words if w != extra or value]
             return (f"{message}{dest.upper()} is positional in `so101-sim {name}`, with no "
                     f"flag: so101-sim {' '.join(fixed)}")
-        close = difflib.get_close_matches(extra.split("=")[0], flags, n=1, cutoff=0.75)
+        close = difflib.get_close_matches(flag, flags, n=1, cutoff=0.75)
         if extra.startswith("-") and close:
             return f"{message}did you mean {close[0]}? (`so101-sim {name} --help` lists them)"
     return f"{message}`so101-sim {name} --help` lists its arguments"
