@@ -18,6 +18,8 @@ In Python, ``import so101_sim.lerobot_plugin`` and then
 
 from __future__ import annotations
 
+import logging
+import sys
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
@@ -32,6 +34,7 @@ from so101_sim import ENV_ID
 from so101_sim.sim import OBS_TYPES, env_state_size
 from so101_sim.tasks import ALL_CAMERAS, load_task
 from so101_sim.utils.lerobot_cli import config_errors, one_line_errors
+from so101_sim.utils.policy_frames import size_warning
 from so101_sim.utils.units import FEATURE_NAMES
 
 # lerobot 0.6.1's `load_plugin` lists the submodules of whatever `discover_packages_path`
@@ -150,6 +153,10 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         ``LeRobotRolloutAdapter`` (the base class offers no hook for wrappers)."""
         if n_envs < 1:
             raise ValueError(f"n_envs={n_envs} is invalid; expected at least 1")
+        cameras = [k.split("/", 1)[1] for k in self.features if k.startswith("pixels/")]
+        warning = size_warning(sys.argv, (self.image_height, self.image_width), cameras, "--env")
+        if warning:  # lerobot-eval hands the policy these frames as they are
+            logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE, warning)
         make_one = partial(_make_wrapped_env, self.gym_id, self.disable_env_checker,
                            self.gym_kwargs)
         if use_async_envs and n_envs > 1:

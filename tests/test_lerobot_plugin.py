@@ -200,3 +200,27 @@ def test_lerobot_eval_rollout_runs_an_episode(built) -> None:
     first = policy.seen[0]
     assert isinstance(first["task"][0], str) and first["task"][0]
     assert tuple(first["observation.images.front"].shape) == (1, 3, H, W)
+
+
+def test_lerobot_eval_names_a_policy_that_takes_other_frames(monkeypatch, caplog) -> None:
+    """`lerobot-eval --env.type=so101_pick_place --policy.path=policy/pick_place_diffusion`
+    without --env.image_height/width fed the 60x80 policy 480x640 frames (it centre-crops
+    54x72 of them): 0% and not a word. Building the envs now says so, once."""
+    import sys
+    from pathlib import Path
+
+    shipped = Path(__file__).resolve().parents[1] / "policy" / "pick_place_diffusion"
+    monkeypatch.setattr(sys, "argv", ["lerobot-eval", f"--policy.path={shipped}"])
+    found = {}
+    for size in ((H, W), (60, 80)):
+        caplog.clear()
+        cfg = make_env_config(ENV_TYPE, image_height=size[0], image_width=size[1],
+                              episode_length=EPISODE_LENGTH)
+        with caplog.at_level("WARNING"):
+            close_envs(make_env(cfg, n_envs=1, use_async_envs=False))
+        found[size] = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert found[(60, 80)] == []  # the policy's own size: nothing to say
+    assert found[(H, W)] == [
+        f"--env.type={ENV_TYPE}: {shipped} takes camera frames of front 60x80, side 60x80, "
+        f"and this env sends {H}x{W}: nothing on the way resizes them, so the policy would "
+        "see the wrong picture; add --env.image_height=60 --env.image_width=80"]

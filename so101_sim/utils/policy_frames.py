@@ -1,12 +1,13 @@
-"""One warning when the policy on the command line takes frames of another size than the sim
-robot sends.
+"""One warning when the policy on a lerobot command line takes frames of another size than the
+sim sends.
 
-lerobot-rollout, lerobot-record with ``--policy.path`` and the async robot client build the
-policy and the robot apart, and neither lerobot nor the policy's processors resize camera
-frames: the shipped 60x80 policy given the robot's default 480x640 frames centre-crops 54x72
-out of their middle and fails every episode without a word. The robot cannot see the policy,
-so it reads the path from the command line and the policy's ``config.json`` (as data), and
-names the flags that fit. A hub id or an unreadable folder is left alone.
+lerobot-eval, lerobot-rollout, lerobot-record with ``--policy.path`` and the async robot
+client build the policy apart from the env or robot, and neither lerobot nor the policy's
+processors resize camera frames: the shipped 60x80 policy given the default 480x640 frames
+centre-crops 54x72 out of their middle and fails every episode without a word. The env and the
+robot cannot see the policy, so they read its path from the command line and its
+``config.json`` (as data), and name the flags that fit. A hub id or an unreadable folder is
+left alone. Imports nothing heavy.
 """
 
 from __future__ import annotations
@@ -48,9 +49,10 @@ def trained_size(policy: Path) -> tuple[int, int] | None:
         return None
 
 
-def size_warning(argv: Sequence[str], image_size: tuple[int, int],
-                 cameras: Sequence[str]) -> str | None:
-    """The warning for a policy whose image inputs are not `image_size`, else None."""
+def size_warning(argv: Sequence[str], image_size: tuple[int, int], cameras: Sequence[str],
+                 group: str = "--robot") -> str | None:
+    """The warning for a policy whose image inputs are not `image_size`, else None. `group`
+    names the flags: ``--robot`` (which can also render larger and resize) or ``--env``."""
     found = policy_path(argv)
     if found is None:
         return None
@@ -60,13 +62,14 @@ def size_warning(argv: Sequence[str], image_size: tuple[int, int],
     if not wrong:
         return None
     h, w = next(iter(wrong.values()))
-    flags = f"--robot.image_height={h} --robot.image_width={w}"
+    flags = f"{group}.image_height={h} {group}.image_width={w}"
     render = trained_size(policy)
-    if render is not None and render != (h, w):  # and render as its demos were, resized
+    if group == "--robot" and render is not None and render != (h, w):  # render as its demos
         flags += f" --robot.render_height={render[0]} --robot.render_width={render[1]}"
     shown = ", ".join(f"{cam} {hh}x{ww}" for cam, (hh, ww) in wrong.items())
     fate = ("the policy server resizes them by plain bilinear interpolation, not as the demos "
             "were resized" if flag == "--pretrained_name_or_path" else
             "nothing on the way resizes them, so the policy would see the wrong picture")
-    return (f"{policy} takes camera frames of {shown}, and this robot sends "
+    sender = "robot" if group == "--robot" else "env"
+    return (f"{policy} takes camera frames of {shown}, and this {sender} sends "
             f"{image_size[0]}x{image_size[1]}: {fate}; add {flags}")
