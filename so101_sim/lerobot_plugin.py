@@ -31,10 +31,10 @@ from lerobot.envs.utils import NEW_ROLLOUT_OPTION
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
 from so101_sim import ENV_ID
+from so101_sim.policy_frames import size_warning
 from so101_sim.sim import OBS_TYPES, env_state_size
 from so101_sim.tasks import ALL_CAMERAS, load_task
 from so101_sim.utils.lerobot_cli import config_errors, one_line_errors
-from so101_sim.utils.policy_frames import size_warning
 from so101_sim.utils.units import FEATURE_NAMES
 
 # lerobot 0.6.1's `load_plugin` lists the submodules of whatever `discover_packages_path`

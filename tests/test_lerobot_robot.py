@@ -217,7 +217,7 @@ def test_a_policy_that_takes_other_frames_is_named_at_connect(tmp_path, monkeypa
     """`lerobot-rollout --policy.path=policy/pick_place_diffusion --robot.type=so101_sim`
     without the image flags fed the 60x80 policy 480x640 frames, which it centre-crops to
     54x72: every episode failed and nothing said why."""
-    from so101_sim.utils.policy_frames import size_warning
+    from so101_sim.policy_frames import size_warning
 
     flags = ("--robot.image_height=60 --robot.image_width=80 --robot.render_height=480 "
              "--robot.render_width=640")

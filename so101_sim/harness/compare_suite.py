@@ -82,8 +82,7 @@ def suite_summary_lines(r: dict[str, Any]) -> list[str]:
     lines = [f"A: {r['a']}", f"B: {r['b']}",
              "| task | seeds | A | B | both | only A | only B | neither | A - B, points (95% CI) "
              "| McNemar p |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    rows = [(t, x) for t, x in r["per_task"].items()]
-    for name, x in [*rows, ("all, pooled", r["pooled"])]:
+    for name, x in [*r["per_task"].items(), ("all, pooled", r["pooled"])]:
         p = x["paired"]
         n = sum(p[k] for k in COUNTS)
         lo, hi = x["difference_ci95_pp"]

@@ -15,7 +15,6 @@ runs it in a process forked from that server, on the core the driver's imports l
 
 from __future__ import annotations
 
-import json
 import threading
 import time
 from pathlib import Path
@@ -130,14 +129,11 @@ def start_self_check(checkpoint: Path, task: str, camera_map: dict[str, str] | N
     """
     from so101_sim.harness.camera_map import resolve_camera_map
     from so101_sim.harness.frames import check_key, expect_self_check
-    from so101_sim.harness.policies.checks import IMAGE_PREFIX
     from so101_sim.tasks import ALL_CAMERAS, load_task
-    from so101_sim.train.checkpoint import train_image_size
+    from so101_sim.train.checkpoint import image_input_shapes, train_image_size
 
     try:
-        features = json.loads((checkpoint / "config.json").read_text())["input_features"]
-        shapes = {k[len(IMAGE_PREFIX):]: tuple(int(d) for d in f["shape"])
-                  for k, f in features.items() if k.startswith(IMAGE_PREFIX)}
+        shapes = image_input_shapes(checkpoint)
         sizes = {shape[1:] for shape in shapes.values()}
         if len(sizes) != 1:
             return False

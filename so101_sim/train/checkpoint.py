@@ -90,6 +90,15 @@ def load_processors(cfg: Any, path: Path, device: str) -> tuple[Any, Any]:
                            f"{type(exc).__name__}: {str(exc)[:300]}") from exc
 
 
+def image_input_shapes(path: Path) -> dict[str, tuple[int, ...]]:
+    """{camera: (C, H, W)} of the checkpoint's image inputs, from its config.json alone (no
+    lerobot); OSError, ValueError, KeyError or TypeError for a file that is not one."""
+    prefix = "observation.images."
+    features = json.loads((Path(path) / "config.json").read_text())["input_features"]
+    return {k[len(prefix):]: tuple(int(d) for d in f["shape"])
+            for k, f in features.items() if k.startswith(prefix)}
+
+
 def train_image_size(path: Path) -> tuple[int, int] | None:
     f = path / TRAIN_INFO
     if not f.exists():

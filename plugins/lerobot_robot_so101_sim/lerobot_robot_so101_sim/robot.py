@@ -31,8 +31,8 @@ from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnected
 from lerobot_robot_so101_sim import registry
 from lerobot_robot_so101_sim.config import ROBOT_TYPE, SO101SimConfig
 from lerobot_robot_so101_sim.dataset_events import unwatch_datasets, watch_datasets
+from so101_sim.policy_frames import size_warning
 from so101_sim.tasks import load_task
-from so101_sim.utils.policy_frames import size_warning
 from so101_sim.utils.units import FEATURE_NAMES
 
 logger = logging.getLogger(__name__)

@@ -7,14 +7,15 @@ processors resize camera frames: the shipped 60x80 policy given the default 480x
 centre-crops 54x72 out of their middle and fails every episode without a word. The env and the
 robot cannot see the policy, so they read its path from the command line and its
 ``config.json`` (as data), and name the flags that fit. A hub id or an unreadable folder is
-left alone. Imports nothing heavy.
+left alone. Imports neither torch nor lerobot.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
+
+from so101_sim.train.checkpoint import image_input_shapes, train_image_size
 
 POLICY_FLAGS = ("--policy.path", "--pretrained_name_or_path")  # lerobot CLIs, robot_client
 
@@ -30,25 +31,6 @@ def policy_path(argv: Sequence[str]) -> tuple[Path, str] | None:
     return None
 
 
-def input_sizes(policy: Path) -> dict[str, tuple[int, int]]:
-    """{camera: (height, width)} of the policy's image inputs (C, H, W in its config)."""
-    try:
-        features = json.loads((policy / "config.json").read_text())["input_features"]
-        return {key.rsplit(".", 1)[-1]: (int(f["shape"][1]), int(f["shape"][2]))
-                for key, f in features.items() if f.get("type") == "VISUAL"}
-    except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError):
-        return {}
-
-
-def trained_size(policy: Path) -> tuple[int, int] | None:
-    """The frame size of the policy's demos, if so101-sim trained it."""
-    try:
-        h, w = json.loads((policy / "so101_sim_train.json").read_text())["dataset_image_size"]
-        return int(h), int(w)
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-
-
 def size_warning(argv: Sequence[str], image_size: tuple[int, int], cameras: Sequence[str],
                  group: str = "--robot") -> str | None:
     """The warning for a policy whose image inputs are not `image_size`, else None. `group`
@@ -57,13 +39,17 @@ def size_warning(argv: Sequence[str], image_size: tuple[int, int], cameras: Sequ
     if found is None:
         return None
     policy, flag = found
-    sizes = {cam: hw for cam, hw in input_sizes(policy).items() if cam in cameras}
+    try:
+        sizes = {cam: shape[1:3] for cam, shape in image_input_shapes(policy).items()
+                 if cam in cameras}
+        render = train_image_size(policy)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None  # not a checkpoint config we can read: loading it will say so
     wrong = {cam: hw for cam, hw in sizes.items() if hw != tuple(image_size)}
     if not wrong:
         return None
     h, w = next(iter(wrong.values()))
     flags = f"{group}.image_height={h} {group}.image_width={w}"
-    render = trained_size(policy)
     if group == "--robot" and render is not None and render != (h, w):  # render as its demos
         flags += f" --robot.render_height={render[0]} --robot.render_width={render[1]}"
     shown = ", ".join(f"{cam} {hh}x{ww}" for cam, (hh, ww) in wrong.items())
