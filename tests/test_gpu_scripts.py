@@ -173,6 +173,37 @@ def test_with_pyav_present_the_stand_in_steps_aside() -> None:
     assert sys.modules["av"] is av and hasattr(av, "VideoFrame")
 
 
+_STAND_IN_PACKAGE = """
+import importlib.metadata
+import av
+from so101_sim.harness.policies.lerobot import LeRobotPolicy
+print(av.__version__, importlib.metadata.version("av"))
+policy = LeRobotPolicy(__import__("sys").argv[1], task_description="pick")
+print(type(policy.policy).__name__)
+"""
+
+
+def test_the_stand_in_package_lets_eval_load_a_policy(tmp_path: Path) -> None:
+    """eval_on_gpu.sh's PyAV stand-in, written as a package ahead of the real av on the path (as
+    on the GPU image, which has none): lerobot's datasets module sees an installed av, and the
+    harness loads a Diffusion checkpoint through lerobot."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from tiny_policy import make_tiny_diffusion_checkpoint
+
+    ckpt = make_tiny_diffusion_checkpoint(tmp_path / "tiny", input_size=(48, 64),
+                                          dataset_image_size=(96, 128))
+    train_without_pyav = load_script(GPU / "train_without_pyav.py")
+    package = train_without_pyav.write_package(tmp_path / "site")
+    assert (package / "__init__.py").is_file()
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(tmp_path / "site"), os.environ.get("PYTHONPATH", "")])}
+    run = subprocess.run([sys.executable, "-c", _STAND_IN_PACKAGE, str(ckpt)], env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    lines = run.stdout.splitlines()  # lerobot prints a line of its own between ours
+    assert lines[0] == "0+opencv-stand-in 0.0.0" and lines[-1] == "DiffusionPolicy"
+
+
 def test_two_calls_join_the_halves_and_send_back_fp16_policies(packed, tmp_path: Path) -> None:
     """finetune_from_stash.sh (call 2) joins the half call 1 stashed with the half it carries,
     trains from the shipped suite weights and, beside it, a second run from scratch, and leaves

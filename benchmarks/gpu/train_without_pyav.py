@@ -81,13 +81,9 @@ def _missing(name: str) -> _Unavailable:
     return _Unavailable()
 
 
-def install_stand_in() -> None:
-    """Make `import av` give the OpenCV stand-in, unless PyAV itself imports."""
-    try:
-        import av  # noqa: F401
-        return
-    except ImportError:
-        pass
+def stand_in_module() -> types.ModuleType:
+    """The OpenCV stand-in for the `av` module (benchmarks/gpu/eval_on_gpu.sh installs it as a
+    package, so env workers get it too)."""
     module = types.ModuleType("av")
     module.__spec__ = importlib.machinery.ModuleSpec("av", None)  # find_spec("av") works
     module.__version__ = "0+opencv-stand-in"
@@ -96,7 +92,34 @@ def install_stand_in() -> None:
         WARNING=30, ERROR=40, INFO=20, set_level=lambda level: None,
         restore_default_callback=lambda: None, get_level=lambda: 30)
     module.__getattr__ = _missing
-    sys.modules["av"] = module
+    return module
+
+
+def write_package(site: str | Path) -> Path:
+    """Write the stand-in as an installed `av` package (and its version record) into the
+    folder `site`, for a PYTHONPATH on a machine without PyAV: every process that imports
+    `av`, env workers too, then gets the stand-in. Returns the package folder."""
+    site = Path(site)
+    package, meta = site / "av", site / "av-0.0.0.dist-info"
+    package.mkdir(parents=True, exist_ok=True)
+    meta.mkdir(exist_ok=True)
+    (meta / "METADATA").write_text("Metadata-Version: 2.1\nName: av\nVersion: 0.0.0\n")
+    (package / "__init__.py").write_text(
+        "# PyAV stand-in written by benchmarks/gpu/train_without_pyav.py\n"
+        f"import sys\nsys.path.insert(0, {str(Path(__file__).resolve().parent)!r})\n"
+        "from train_without_pyav import stand_in_module\n"
+        "sys.modules[__name__] = stand_in_module()\n")
+    return package
+
+
+def install_stand_in() -> None:
+    """Make `import av` give the OpenCV stand-in, unless PyAV itself imports."""
+    try:
+        import av  # noqa: F401
+        return
+    except ImportError:
+        pass
+    sys.modules["av"] = stand_in_module()
     # lerobot.datasets asks importlib.metadata for av's version before it imports anything
     meta = Path(tempfile.mkdtemp(prefix="av_stand_in_")) / "av-0.0.0.dist-info"
     meta.mkdir()
