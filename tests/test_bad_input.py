@@ -579,12 +579,46 @@ def test_every_cli_default_is_in_its_help() -> None:
     assert unsaid == []
 
 
-def test_the_typical_run_in_the_top_level_help_parses() -> None:
-    """Each command `so101-sim --help` shows as a typical run is accepted as written."""
+def test_the_typical_run_in_the_top_level_help_parses(tmp_path: Path) -> None:
+    """Each command `so101-sim --help` shows as a typical run is accepted as written, and its
+    eval names the policy train leaves in RUN (it named lerobot-train's checkpoints/last/,
+    which train does not write)."""
     from so101_sim.cli.parser import build_parser
+    from so101_sim.train.trainer import finish
 
     parser = build_parser()
     lines = [x.split()[1:] for x in parser.epilog.splitlines() if x.startswith("  so101-sim ")]
     assert [x[0] for x in lines] == ["record", "train", "eval", "compare"]
     for argv in lines:
         assert parser.parse_args(argv).command == argv[0]
+    run = _run_with_checkpoints(tmp_path / "RUN", [4])
+    finish(run, run / "checkpoints" / "step_0000004", keep_frame_cache=False)
+    policy = parser.parse_args(lines[2]).policy
+    assert (tmp_path / policy / "model.safetensors").is_file(), policy
+
+
+@pytest.mark.parametrize("typed, meant", [
+    ("RUN/checkpoints/last/pretrained_model", ["RUN/pretrained_model",
+                                               "RUN/checkpoints/step_0000008/pretrained_model"]),
+    ("RUN", ["RUN/pretrained_model"]),
+    ("RUN/checkpoints/step_0000004", ["RUN/checkpoints/step_0000004/pretrained_model"]),
+    ("elsewhere/pretrained_model", []),
+])
+def test_a_policy_path_next_to_a_policy_names_it(typed: str, meant: list[str], tmp_path: Path,
+                                                 capsys, monkeypatch) -> None:
+    """lerobot-train's habit (checkpoints/last/pretrained_model), the run folder itself or a
+    step folder given as --policy: the error names the policy folder that is there."""
+    from so101_sim.cli import main
+
+    run = _run_with_checkpoints(tmp_path / "RUN", [4, 8])
+    for model in (*run.glob("checkpoints/*/pretrained_model"), run / "pretrained_model"):
+        model.mkdir(exist_ok=True)
+        (model / "config.json").write_text("{}")
+    monkeypatch.chdir(tmp_path)
+    assert main(["eval", "--policy", typed, "--episodes", "1"]) == 2
+    err = capsys.readouterr().err
+    assert f"policy checkpoint {typed} " in err
+    if meant:
+        assert f"did you mean --policy {' or --policy '.join(meant)}? " in err
+    else:
+        assert "did you mean" not in err

@@ -90,7 +90,7 @@ def build_parsers() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argumen
                     "them,\nevaluate it closed-loop with intervals, compare two evaluations.",
         epilog="a typical run:\n  so101-sim record --episodes 100 --out DATA\n"
                "  so101-sim train --dataset DATA --out RUN\n"
-               "  so101-sim eval --policy RUN/checkpoints/last/pretrained_model --out EVAL\n"
+               "  so101-sim eval --policy RUN/pretrained_model --out EVAL\n"
                "  so101-sim compare EVAL OTHER_EVAL\n"
                "`so101-sim COMMAND --help` lists a command's options.")
     parser.add_argument("--version", action=ShowVersion,

@@ -28,10 +28,35 @@ TRAIN_INFO = "so101_sim_train.json"
 TASK_KEY, TEXTS_KEY, SEEDS_KEY = "dataset_task", "dataset_task_texts", "dataset_eval_seeds"
 
 
+def nearby_policies(path: Path) -> list[Path]:
+    """Policy folders a user who typed `path` likely meant: the `pretrained_model` inside it (a
+    run or a step folder given), or, for a path that does not exist, the final and the latest
+    checkpointed policy of the nearest training run above it (`train` keeps
+    ``checkpoints/step_NNNNNNN``, with no ``last`` link as lerobot-train makes)."""
+    if (path / "pretrained_model" / "config.json").is_file():
+        return [path / "pretrained_model"]
+    if path.exists():
+        return []
+    existing = next((p for p in path.parents if p.is_dir()), None)
+    if existing is None:
+        return []
+    for run in (existing, *existing.parents)[:4]:
+        steps = sorted(run.glob("checkpoints/step_*/pretrained_model/config.json"))
+        found = [p.parent for p in (run / "pretrained_model" / "config.json", *steps[-1:])
+                 if p.is_file()]
+        if found:
+            return found
+    return []
+
+
 def check_files(path: Path) -> None:
     hint = ("expected a lerobot checkpoint directory with config.json, model.safetensors and "
-            "policy_preprocessor.json/policy_postprocessor.json (lerobot-train writes them to "
+            "policy_preprocessor.json/policy_postprocessor.json (so101-sim train writes the "
+            "final one to RUN/pretrained_model, lerobot-train to "
             "outputs/train/<run>/checkpoints/<step>/pretrained_model), or --policy expert")
+    near = nearby_policies(path)
+    if near:
+        hint = f"did you mean --policy {' or --policy '.join(map(str, near))}? " + hint
     if not path.is_dir():
         raise FileNotFoundError(f"policy checkpoint {path} not found; {hint}")
     for name in ("config.json", "model.safetensors", "policy_preprocessor.json",
