@@ -607,7 +607,7 @@ def test_the_typical_run_in_the_top_level_help_parses(tmp_path: Path) -> None:
 def test_a_policy_path_next_to_a_policy_names_it(typed: str, meant: list[str], tmp_path: Path,
                                                  capsys, monkeypatch) -> None:
     """lerobot-train's habit (checkpoints/last/pretrained_model), the run folder itself or a
-    step folder given as --policy: the error names the policy folder that is there."""
+    step folder given to eval or export: the error names the policy folder that is there."""
     from so101_sim.cli import main
 
     run = _run_with_checkpoints(tmp_path / "RUN", [4, 8])
@@ -622,3 +622,7 @@ def test_a_policy_path_next_to_a_policy_names_it(typed: str, meant: list[str], t
         assert f"did you mean --policy {' or --policy '.join(meant)}? " in err
     else:
         assert "did you mean" not in err
+    assert main(["export", typed]) == 2  # export says the same
+    err = capsys.readouterr().err
+    assert f"{typed} is not a so101-sim checkpoint" in err
+    assert (f"did you mean {' or '.join(meant)}?" in err) if meant else ("did you mean" not in err)

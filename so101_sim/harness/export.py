@@ -24,6 +24,7 @@ from so101_sim.train.checkpoint import (
     checkpoint_name,
     damaged,
     demos_of,
+    nearby_policies,
     ranges_text,
 )
 from so101_sim.utils.locks import folder_lock
@@ -313,9 +314,12 @@ def export_policy(checkpoint: Path, dest: Path,
     checkpoint, dest = Path(checkpoint), Path(dest)
     info_path = checkpoint / TRAIN_INFO
     if not (checkpoint / "model.safetensors").is_file() or not info_path.is_file():
+        near = " or ".join(map(str, nearby_policies(checkpoint)))
         raise FileNotFoundError(f"{checkpoint} is not a so101-sim checkpoint (needs "
-                                f"model.safetensors and {TRAIN_INFO}); pass a "
-                                "checkpoints/step_*/pretrained_model folder")
+                                f"model.safetensors and {TRAIN_INFO}); "
+                                + (f"did you mean {near}?" if near else
+                                   "pass a run's pretrained_model folder (RUN/pretrained_model "
+                                   "or RUN/checkpoints/step_*/pretrained_model)"))
     check_processor_files(checkpoint)  # never ship a file that would run code when loaded
     check_readable(checkpoint)
     dirs = [] if eval_dir is None else [eval_dir] if isinstance(eval_dir, (str, Path)) \
