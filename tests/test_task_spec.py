@@ -28,6 +28,15 @@ def test_unknown_task_name_lists_the_choices():
         load_task("pick_plaec")
 
 
+@pytest.mark.parametrize("typed, meant", [("stak", "stack"), ("pick_plac", "pick_place"),
+                                          ("tidy_up", "tidy"), ("no_such_task", None)])
+def test_a_misspelt_task_gets_the_one_it_is_close_to(typed: str, meant: str | None) -> None:
+    with pytest.raises(TaskSpecError) as err:
+        load_task(typed)
+    hint = f"unknown task {typed!r} (did you mean {meant!r}?); expected one of"
+    assert (hint in str(err.value)) if meant else ("did you mean" not in str(err.value))
+
+
 def test_missing_task_file():
     with pytest.raises(TaskSpecError, match="does not exist"):
         load_task("/nonexistent/task.toml")

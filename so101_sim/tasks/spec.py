@@ -11,6 +11,7 @@ rule; the other sections size and place the objects. The optional
 
 from __future__ import annotations
 
+import difflib
 import hashlib
 import json
 import math
@@ -223,8 +224,10 @@ def resolve_task_path(task: str | Path) -> Path:
             raise TaskSpecError(f"task file {str(path)!r} does not exist; pass a name from "
                                 f"{available_tasks()} or an existing .toml path")
         return path
-    raise TaskSpecError(f"unknown task {str(task)!r}; expected one of {available_tasks()} "
-                        "or a path to a task .toml file")
+    near = difflib.get_close_matches(text, available_tasks(), n=1)
+    raise TaskSpecError(f"unknown task {text!r}"
+                        + (f" (did you mean {near[0]!r}?)" if near else "")
+                        + f"; expected one of {available_tasks()} or a path to a task .toml file")
 
 
 def task_ref(spec: TaskSpec) -> str:
