@@ -184,7 +184,7 @@ print(type(policy.policy).__name__)
 
 
 def test_the_stand_in_package_lets_eval_load_a_policy(tmp_path: Path) -> None:
-    """eval_on_gpu.sh's PyAV stand-in, written as a package ahead of the real av on the path (as
+    """site_setup.sh's PyAV stand-in, written as a package ahead of the real av on the path (as
     on the GPU image, which has none): lerobot's datasets module sees an installed av, and the
     harness loads a Diffusion checkpoint through lerobot."""
     sys.path.insert(0, str(Path(__file__).parent))

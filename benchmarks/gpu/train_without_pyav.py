@@ -82,7 +82,7 @@ def _missing(name: str) -> _Unavailable:
 
 
 def stand_in_module() -> types.ModuleType:
-    """The OpenCV stand-in for the `av` module (benchmarks/gpu/eval_on_gpu.sh installs it as a
+    """The OpenCV stand-in for the `av` module (benchmarks/gpu/site_setup.sh installs it as a
     package, so env workers get it too)."""
     module = types.ModuleType("av")
     module.__spec__ = importlib.machinery.ModuleSpec("av", None)  # find_spec("av") works
