@@ -329,7 +329,8 @@ def build_parsers() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argumen
                          "CPUs with AVX512-BF16/AMX; outcomes can differ on a few seeds, see "
                          "benchmarks/README.md)")
     ev.add_argument("--policy-batch", type=positive_int, default=None,
-                    help="rows per policy forward, padded (default 8; 1 = one env per forward)")
+                    help="rows per policy forward, padded (default 8; 1 = one env per "
+                         "forward; on a GPU, the --n-envs value is faster)")
     ev.add_argument("--camera-map", type=parse_camera_map_arg, default=None,
                     metavar="POLICY_CAM=ENV_CAM,...",
                     help="feed env cameras (front, side) to policy camera inputs named after "
