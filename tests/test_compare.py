@@ -140,6 +140,22 @@ def test_compare_refuses_other_seeds_or_task(tmp_path, capsys):
     assert seed_ranges([5, 1, 2, 3, 9]) == "1..3, 5, 9"
 
 
+def test_a_run_that_stopped_early_is_named_as_one(tmp_path, capsys):
+    """`compare REF NEW` where NEW is an `eval --against REF` run that stopped after its
+    verdict: refused (other seeds), and the error says that its verdict is the comparison."""
+    ref = _fake_run(tmp_path, "ref", dict.fromkeys(range(100_000, 100_200), True))
+    new = _fake_run(tmp_path, "new", dict.fromkeys(range(100_000, 100_060), False))
+    info = json.loads((new / "eval_info.json").read_text())
+    info["sequential_verdict"] = {"verdict": "worse", "episodes": 57, "against": str(ref)}
+    (new / "eval_info.json").write_text(json.dumps(info))
+    assert main(["compare", str(ref), str(new)]) == 2
+    err = capsys.readouterr().err
+    assert (f"B ({new}) is an `eval --against` run that stopped after 57 episodes with the "
+            f"verdict 'worse': that verdict, in its eval_info.json (sequential_verdict), is its "
+            f"comparison with {ref}") in err
+    assert "A (" not in err
+
+
 class _Rest:
     """Holds the rest pose: never grasps, so it fails every seed the expert solves."""
 

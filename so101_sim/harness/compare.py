@@ -38,6 +38,7 @@ class RunSide:
     actions_sha: dict[int, str | None]
     setup: dict[str, Any] = field(default_factory=dict)  # software versions, CPU (if recorded)
     render_size: tuple[int, int] | None = None  # the cameras' render size, if the policy saw them
+    sequential: dict[str, Any] | None = None  # an `eval --against` run's sequential_verdict
 
     @property
     def n_success(self) -> int:
@@ -82,7 +83,7 @@ def load_run(path: str | Path) -> RunSide:
         side = RunSide(path, str(cfg["policy"]), str(cfg.get("policy_fingerprint", "")),
                        str(cfg["task"]), cfg.get("task_sha256"), str(cfg.get("images", "?")),
                        success, shas, {k: cfg[k] for k in SETUP_KEYS if k in cfg},
-                       seen_render_size(cfg))
+                       seen_render_size(cfg), sequential_verdict(info))
     except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"{info_path} is not an so101-sim eval result ({exc!r}); expected "
                          "the eval_info.json that `so101-sim eval` writes") from None
@@ -104,6 +105,12 @@ def suite_tasks(path: str | Path) -> list[str] | None:
             or not all(isinstance(t, str) and t for t in tasks):
         return None
     return tasks
+
+
+def sequential_verdict(info: dict[str, Any]) -> dict[str, Any] | None:
+    """The verdict an `eval --against` run stopped at (None for any other run)."""
+    verdict = info.get("sequential_verdict")
+    return verdict if isinstance(verdict, dict) and "verdict" in verdict else None
 
 
 def seen_render_size(config: dict[str, Any]) -> tuple[int, int] | None:
@@ -150,9 +157,17 @@ def check_comparable(a: RunSide, b: RunSide) -> None:
                         + (f"; only in A: {seed_ranges(only_a)}" if only_a else "")
                         + (f"; only in B: {seed_ranges(only_b)}" if only_b else ""))
     if problems:
+        stopped = [f"{side} ({run.path}) is an `eval --against` run that stopped after "
+                   f"{run.sequential.get('episodes', '?')} episodes with the verdict "
+                   f"{run.sequential['verdict']!r}: that verdict, in its {INFO} "
+                   "(sequential_verdict), is its comparison with "
+                   f"{run.sequential.get('against', 'its reference')}; a fixed-size test on the "
+                   "seeds where it stopped would not keep its error rate"
+                   for side, run in (("A", a), ("B", b))
+                   if run.sequential is not None and set(a.success) != set(b.success)]
         raise ValueError(f"cannot compare {a.path} (A) with {b.path} (B) seed by seed: "
-                         + "; ".join(problems) + ". Evaluate both with the same --task, "
-                         "--seed-start and --episodes")
+                         + "; ".join(problems + stopped) + ". Evaluate both with the same "
+                         "--task, --seed-start and --episodes")
 
 
 def compare_runs(run_a: str | Path, run_b: str | Path,
