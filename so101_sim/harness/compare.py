@@ -64,9 +64,10 @@ def load_run(path: str | Path) -> RunSide:
     except (ValueError, UnicodeDecodeError) as exc:
         raise ValueError(f"{info_path} is not JSON ({exc}); expected the eval_info.json that "
                          "`so101-sim eval` writes") from None
-    if suite_tasks(path) is not None:
+    tasks = tasks_of(info)
+    if tasks is not None:
         raise ValueError(f"{path} is an `so101-sim eval --task a,b` folder, one subfolder per "
-                         f"task: give one task's subfolder, e.g. {path / suite_tasks(path)[0]} "
+                         f"task: give one task's subfolder, e.g. {path / tasks[0]} "
                          "(only `so101-sim compare` takes two such folders whole)")
     if isinstance(info, dict) and "overall" in info and "per_episode" not in info:
         overall = info["overall"] if isinstance(info["overall"], dict) else {}
@@ -99,7 +100,14 @@ def suite_tasks(path: str | Path) -> list[str] | None:
         info = json.loads((Path(path) / INFO).read_text(encoding="utf-8"))
     except (OSError, ValueError, UnicodeDecodeError):
         return None
-    config = info.get("config") if isinstance(info, dict) else None
+    return tasks_of(info)
+
+
+def tasks_of(info: Any) -> list[str] | None:
+    """The tasks of a parsed suite eval_info.json (None for any other content)."""
+    if not isinstance(info, dict):
+        return None
+    config = info.get("config")
     tasks = config.get("tasks") if isinstance(config, dict) else None
     if "per_episode" in info or not isinstance(tasks, list) or not tasks \
             or not all(isinstance(t, str) and t for t in tasks):
@@ -149,7 +157,8 @@ def check_comparable(a: RunSide, b: RunSide) -> None:
         problems.append(f"task file: both ran {a.task!r}, but its settings differ (task_sha256 "
                         f"{a.task_sha256[:12]} vs {b.task_sha256[:12]}): it was edited between "
                         "the runs")
-    if set(a.success) != set(b.success):
+    other_seeds = set(a.success) != set(b.success)
+    if other_seeds:
         only_a, only_b = sorted(set(a.success) - set(b.success)), sorted(set(b.success)
                                                                          - set(a.success))
         problems.append(f"seeds: A has {len(a.success)} ({seed_ranges(a.success)}), B has "
@@ -164,7 +173,7 @@ def check_comparable(a: RunSide, b: RunSide) -> None:
                    f"{run.sequential.get('against', 'its reference')}; a fixed-size test on the "
                    "seeds where it stopped would not keep its error rate"
                    for side, run in (("A", a), ("B", b))
-                   if run.sequential is not None and set(a.success) != set(b.success)]
+                   if run.sequential is not None and other_seeds]
         raise ValueError(f"cannot compare {a.path} (A) with {b.path} (B) seed by seed: "
                          + "; ".join(problems + stopped) + ". Evaluate both with the same "
                          "--task, --seed-start and --episodes")

@@ -224,10 +224,10 @@ def resolve_task_path(task: str | Path) -> Path:
             raise TaskSpecError(f"task file {str(path)!r} does not exist; pass a name from "
                                 f"{available_tasks()} or an existing .toml path")
         return path
-    near = difflib.get_close_matches(text, available_tasks(), n=1)
-    raise TaskSpecError(f"unknown task {text!r}"
-                        + (f" (did you mean {near[0]!r}?)" if near else "")
-                        + f"; expected one of {available_tasks()} or a path to a task .toml file")
+    names = available_tasks()
+    near = difflib.get_close_matches(text, names, n=1)
+    raise TaskSpecError(f"unknown task {text!r}" + (f" (did you mean {near[0]!r}?)" if near else "")
+                        + f"; expected one of {names} or a path to a task .toml file")
 
 
 def task_ref(spec: TaskSpec) -> str:

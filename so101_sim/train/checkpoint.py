@@ -26,6 +26,8 @@ TRAIN_INFO = "so101_sim_train.json"
 #: the evaluation seeds among theirs as [first, last] ranges (rollouts of ``eval
 #: --save-rollouts``: the harness will not measure the policy on its own training episodes).
 TASK_KEY, TEXTS_KEY, SEEDS_KEY = "dataset_task", "dataset_task_texts", "dataset_eval_seeds"
+#: lerobot's key prefix of a camera's image input (``observation.images.<camera>``).
+IMAGE_PREFIX = "observation.images."
 
 
 def nearby_policies(path: Path) -> list[Path]:
@@ -118,10 +120,9 @@ def load_processors(cfg: Any, path: Path, device: str) -> tuple[Any, Any]:
 def image_input_shapes(path: Path) -> dict[str, tuple[int, ...]]:
     """{camera: (C, H, W)} of the checkpoint's image inputs, from its config.json alone (no
     lerobot); OSError, ValueError, KeyError or TypeError for a file that is not one."""
-    prefix = "observation.images."
     features = json.loads((Path(path) / "config.json").read_text())["input_features"]
-    return {k[len(prefix):]: tuple(int(d) for d in f["shape"])
-            for k, f in features.items() if k.startswith(prefix)}
+    return {k[len(IMAGE_PREFIX):]: tuple(int(d) for d in f["shape"])
+            for k, f in features.items() if k.startswith(IMAGE_PREFIX)}
 
 
 def train_image_size(path: Path) -> tuple[int, int] | None:

@@ -9,11 +9,10 @@ from typing import Any
 
 from so101_sim.sim import ENV_STATE_SIZE
 from so101_sim.tasks import ALL_CAMERAS as CAMERAS
-from so101_sim.train.checkpoint import TRAIN_INFO, damaged
+from so101_sim.train.checkpoint import IMAGE_PREFIX, TRAIN_INFO, damaged
 
 STATE_KEY = "observation.state"
 ENV_STATE_KEY = "observation.environment_state"
-IMAGE_PREFIX = "observation.images."
 #: Weights of ACT's VAE encoder: it only encodes the demo's action chunk into the latent during
 #: training; at inference lerobot's ACT feeds a zero latent, so these never touch an action.
 ACT_TRAINING_ONLY = "model.vae_encoder"
