@@ -12,8 +12,9 @@ import os
 from pathlib import Path
 
 import cv2
-import imageio.v2 as imageio
 import numpy as np
+
+from so101_sim.utils.mp4 import H264Writer
 
 MIN_HEIGHT = 240  # small renders are enlarged (nearest) so the text stays readable
 HOLD_S = 1.0  # the last frame, with the outcome, is held this long
@@ -28,15 +29,13 @@ class EpisodeVideo:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.fps, self.seed = fps, seed
         # x264 "veryfast": half the encoding CPU of the default preset, in the worker's time.
-        self._writer = imageio.get_writer(self.tmp, fps=fps, codec="libx264", quality=7,
-                                          macro_block_size=8,
-                                          ffmpeg_params=["-preset", "veryfast"])
+        self._writer = H264Writer(self.tmp, fps, preset="veryfast")
         self._last: np.ndarray | None = None
 
     def add(self, frame: np.ndarray, step: int) -> None:
         """Append a rendered front|side frame taken after `step` actions."""
         self._last = _enlarge(frame)
-        self._writer.append_data(_label(self._last, f"seed {self.seed}  step {step}"))
+        self._writer.append(_label(self._last, f"seed {self.seed}  step {step}"))
 
     def finish(self, outcome: str, steps: int) -> Path:
         """Hold the last frame with the outcome, close the file and give it its final name."""
@@ -45,7 +44,7 @@ class EpisodeVideo:
             text = f"seed {self.seed}  step {steps}  {outcome.upper()}"
             frame = _label(self._last, text, (40, 170, 40) if good else (200, 40, 40))
             for _ in range(max(1, round(HOLD_S * self.fps))):
-                self._writer.append_data(frame)
+                self._writer.append(frame)
         self._writer.close()
         os.replace(self.tmp, self.path)
         return self.path

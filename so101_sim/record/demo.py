@@ -11,6 +11,7 @@ import numpy as np
 from tqdm import tqdm
 
 from so101_sim.sim.env import PickPlaceEnv
+from so101_sim.utils.mp4 import H264Writer
 from so101_sim.utils.paths import foreign_folder
 
 # Joint-space waypoints (LeRobot units) visited in order: reach out over the table, sweep
@@ -53,12 +54,11 @@ def run_demo(out_dir: Path, steps: int = 240, image_size: tuple[int, int] = (480
     env = PickPlaceEnv(task=task, image_size=image_size, render_mode="rgb_array")
     obs, _ = env.reset(seed=seed)
     video_path = out_dir / "demo.mp4"
-    with imageio.get_writer(video_path, fps=env.task.fps, codec="libx264", quality=7,
-                            macro_block_size=8) as writer:
-        writer.append_data(env.render())
+    with H264Writer(video_path, fps=env.task.fps) as writer:
+        writer.append(env.render())
         for action in tqdm(fixed_action_sequence(steps), desc="demo", unit="step"):
             obs, _, terminated, truncated, _ = env.step(action)
-            writer.append_data(env.render())
+            writer.append(env.render())
             if terminated or truncated:
                 break
     paths = {"video": video_path}
