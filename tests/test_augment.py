@@ -62,7 +62,8 @@ def test_the_aug_preset_loads_and_bad_sections_are_refused(tmp_path: Path) -> No
     with pytest.raises(PresetError, match="NoSuchTransform"):
         load_preset(bad)
     bad.write_text(_tiny_text() + "\n[augment]\nmax_transforms = 2\n")
-    with pytest.raises(PresetError, match=r"unknown keys \['max_transforms'\]"):
+    with pytest.raises(PresetError, match=r"unknown keys \['max_transforms'\] "
+                       r"\(did you mean 'max_num_transforms'\?\); expected"):
         load_preset(bad)
 
 

@@ -69,6 +69,18 @@ def test_unknown_section(tmp_path):
         load_task(path)
 
 
+@pytest.mark.parametrize("old, new, said", [
+    ("mass = 0.015", "mas = 0.015", "unknown key 'cube.mas' (did you mean 'mass'?); allowed"),
+    ("[render]", "[rendr]", "unknown section [rendr] (did you mean 'render'?); allowed"),
+    ("mass = 0.015", "colour = 'red'", "unknown key 'cube.colour'; allowed"),  # nothing near
+])
+def test_a_misspelt_key_or_section_in_a_task_file_gets_the_one_it_is_close_to(
+        tmp_path, old: str, new: str, said: str) -> None:
+    with pytest.raises(TaskSpecError) as err:
+        load_task(_write(tmp_path, old, new))
+    assert said in str(err.value)
+
+
 @pytest.mark.parametrize("old, new, match", [
     ("fps = 30", "fps = 0", r"episode.fps = 0 is invalid; expected a positive integer"),
     ("x = [0.17, 0.25]", "x = [0.25, 0.17]", r"cube.x = \[0.25, 0.17\] is invalid; expected \[low"),

@@ -143,6 +143,8 @@ def test_task_spec_errors_name_the_value(tmp_path):
         ('kind = "pick_place"', 'kind = "juggle"', r"kind = 'juggle' is invalid; expected one"),
         ("ambient = [0.25, 0.6]", "ambient = [0.6, 0.25]", r"randomize.ambient .* low <= high"),
         ("ambient = [0.25, 0.6]", "glow = [0, 1]", r"unknown key 'randomize.glow'"),
+        ("ambient = [0.25, 0.6]", "ambiant = [0.25, 0.6]",
+         r"unknown key 'randomize.ambiant' \(did you mean 'ambient'\?\); allowed keys"),
         ("msaa = false", 'msaa = false\ncameras = ["front", "top"]',
          r"render.cameras = \['front', 'top'\] is invalid; expected a non-empty list"),
     ]:

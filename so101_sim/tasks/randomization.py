@@ -33,6 +33,8 @@ import math
 from dataclasses import dataclass, fields
 from typing import Any
 
+from so101_sim.utils.text import did_you_mean
+
 Range = tuple[float, float]
 ColorRange = tuple[tuple[float, float, float], tuple[float, float, float]]
 
@@ -121,7 +123,8 @@ def parse_randomize(raw: dict[str, Any], source: str = "<dict>") -> Randomizatio
     values = {}
     for key, value in raw.items():
         if key not in _KEYS:
-            raise ValueError(f"{source}: unknown key 'randomize.{key}'; allowed keys in "
-                             f"[randomize]: {sorted(_KEYS)}")
+            raise ValueError(f"{source}: unknown key 'randomize.{key}'"
+                             f"{did_you_mean(key, _KEYS)}; allowed keys in [randomize]: "
+                             f"{sorted(_KEYS)}")
         values[key] = _parse_one(key, value, source)
     return Randomization(**values)

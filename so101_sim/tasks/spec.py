@@ -11,7 +11,6 @@ rule; the other sections size and place the objects. The optional
 
 from __future__ import annotations
 
-import difflib
 import hashlib
 import json
 import math
@@ -25,6 +24,7 @@ from so101_sim.tasks.kind import get_kind, registered_kinds
 from so101_sim.tasks.randomization import Randomization, parse_randomize
 from so101_sim.tasks.workspace import check_ranges
 from so101_sim.utils.paths import envs_dir
+from so101_sim.utils.text import did_you_mean
 
 Range = tuple[float, float]
 ALL_CAMERAS = ("front", "side", "wrist")
@@ -225,9 +225,8 @@ def resolve_task_path(task: str | Path) -> Path:
                                 f"{available_tasks()} or an existing .toml path")
         return path
     names = available_tasks()
-    near = difflib.get_close_matches(text, names, n=1)
-    raise TaskSpecError(f"unknown task {text!r}" + (f" (did you mean {near[0]!r}?)" if near else "")
-                        + f"; expected one of {names} or a path to a task .toml file")
+    raise TaskSpecError(f"unknown task {text!r}{did_you_mean(text, names)}; expected one of "
+                        f"{names} or a path to a task .toml file")
 
 
 def task_ref(spec: TaskSpec) -> str:
@@ -274,9 +273,10 @@ def parse_task(raw: dict[str, Any], source: str = "<dict>") -> TaskSpec:
             continue
         if isinstance(content, dict):
             if section not in _SCHEMA or section == "":
-                raise TaskSpecError(
-                    f"{source}: unknown section [{section}]; allowed sections: "
-                    f"{sorted([*(s for s in _SCHEMA if s), 'randomize'])}")
+                allowed = sorted([*(s for s in _SCHEMA if s), "randomize"])
+                raise TaskSpecError(f"{source}: unknown section [{section}]"
+                                    f"{did_you_mean(section, allowed)}; allowed sections: "
+                                    f"{allowed}")
             items = content.items()
             schema = _SCHEMA[section]
         else:
@@ -286,8 +286,9 @@ def parse_task(raw: dict[str, Any], source: str = "<dict>") -> TaskSpec:
             qualified = f"{section}.{key}" if section else key
             if key not in schema:
                 where = f"[{section}]" if section else "the top level"
-                raise TaskSpecError(f"{source}: unknown key {qualified!r}; allowed keys in "
-                                    f"{where}: {sorted(schema)}")
+                raise TaskSpecError(f"{source}: unknown key {qualified!r}"
+                                    f"{did_you_mean(key, schema)}; allowed keys in {where}: "
+                                    f"{sorted(schema)}")
             field_name, rule = schema[key]
             converted = _convert(value, rule)
             if converted is None:

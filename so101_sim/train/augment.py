@@ -19,6 +19,8 @@ from typing import Any
 
 import torch
 
+from so101_sim.utils.text import did_you_mean
+
 #: The ``[augment]`` keys a preset may set.
 AUGMENT_KEYS = ("max_num_transforms", "random_order", "tfs")
 _TF_KEYS = ("weight", "type", "kwargs")
@@ -34,7 +36,9 @@ def transforms_config(section: dict[str, Any], where: str = "[augment]"):
 
     unknown = sorted(set(section) - set(AUGMENT_KEYS))
     if unknown:
-        raise ValueError(f"{where}: unknown keys {unknown}; expected some of {list(AUGMENT_KEYS)}")
+        hint = did_you_mean(unknown[0], AUGMENT_KEYS) if len(unknown) == 1 else ""
+        raise ValueError(f"{where}: unknown keys {unknown}{hint}; expected some of "
+                         f"{list(AUGMENT_KEYS)}")
     kwargs: dict[str, Any] = {"enable": True}
     if "max_num_transforms" in section:
         kwargs["max_num_transforms"] = int(section["max_num_transforms"])

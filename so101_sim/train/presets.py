@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from so101_sim.utils.paths import policy_dir
+from so101_sim.utils.text import did_you_mean
 
 # Fields that describe where a config came from or goes to, not the model.
 NOT_IN_PRESET = frozenset({"input_features", "output_features", "repo_id", "private", "tags",
@@ -77,8 +78,10 @@ def preset_path(name_or_path: str | Path) -> Path:
         return p
     p = policy_dir() / "presets" / f"{name_or_path}.toml"
     if not p.is_file():
-        raise PresetError(f"unknown preset {str(name_or_path)!r}; expected one of "
-                          f"{available_presets()} or a path to a .toml preset")
+        names = available_presets()
+        raise PresetError(f"unknown preset {str(name_or_path)!r}"
+                          f"{did_you_mean(str(name_or_path), names)}; expected one of {names} "
+                          "or a path to a .toml preset")
     return p
 
 

@@ -1,8 +1,11 @@
-"""Counts in the lines a user reads: "1 seed", "2 seeds", not "1 seeds"."""
+"""Phrases in the lines a user reads: "1 seed", "2 seeds", not "1 seeds"; "did you mean"."""
 
 from __future__ import annotations
 
-__all__ = ["counted", "seed_span"]
+import difflib
+from collections.abc import Iterable
+
+__all__ = ["counted", "did_you_mean", "seed_span"]
 
 
 def counted(n: int, noun: str, plural: str | None = None) -> str:
@@ -13,3 +16,9 @@ def counted(n: int, noun: str, plural: str | None = None) -> str:
 def seed_span(first: int, last: int) -> str:
     """"seeds 100000..100049", or "seed 100000" for one."""
     return f"seed {first}" if first == last else f"seeds {first}..{last}"
+
+
+def did_you_mean(text: str, names: Iterable[str]) -> str:
+    """" (did you mean 'stack'?)" for the one of `names` close to a misspelt `text`, else ""."""
+    near = difflib.get_close_matches(text, list(names), n=1)
+    return f" (did you mean {near[0]!r}?)" if near else ""
