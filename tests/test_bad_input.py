@@ -626,3 +626,20 @@ def test_a_policy_path_next_to_a_policy_names_it(typed: str, meant: list[str], t
     err = capsys.readouterr().err
     assert f"{typed} is not a so101-sim checkpoint" in err
     assert (f"did you mean {' or '.join(meant)}?" in err) if meant else ("did you mean" not in err)
+
+
+@pytest.mark.parametrize("typed", ["policy/pick_place_diffusion", "pick_place_diffusion"])
+def test_the_shipped_policy_typed_outside_the_checkout_is_named(typed: str, tmp_path: Path,
+                                                                capsys, monkeypatch) -> None:
+    """README's `--policy policy/pick_place_diffusion`, run from another folder: the error
+    names where the shipped policy is."""
+    from so101_sim.cli import main
+    from so101_sim.utils.paths import shipped_policy_dir
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["eval", "--policy", typed, "--episodes", "1"]) == 2
+    err = capsys.readouterr().err
+    assert f"policy checkpoint {typed} not found; did you mean --policy {shipped_policy_dir()}?" \
+        in err
+    assert main(["eval", "--policy", "policy/no_such_policy", "--episodes", "1"]) == 2
+    assert "did you mean" not in capsys.readouterr().err

@@ -17,6 +17,7 @@ from typing import Any
 from so101_sim.dataset.schema import EVAL_SEED_START
 from so101_sim.tasks import available_tasks, load_task
 from so101_sim.train.widen import widen_conditioning, widen_keypoints
+from so101_sim.utils.paths import policy_dir
 from so101_sim.utils.trust import check_processor_files
 
 #: The sidecar ``train`` writes beside each checkpoint's weights.
@@ -51,12 +52,24 @@ def nearby_policies(path: Path) -> list[Path]:
     return []
 
 
+def shipped_named(path: Path) -> list[Path]:
+    """The shipped policy a relative path that is not there names by its last part, as
+    ``policy/pick_place_diffusion`` typed outside the checkout (or the wheel's data)."""
+    if path.is_absolute() or path.exists():
+        return []
+    try:
+        shipped = policy_dir() / path.name
+    except FileNotFoundError:  # an incomplete install; the caller's own error says enough
+        return []
+    return [shipped] if (shipped / "config.json").is_file() else []
+
+
 def check_files(path: Path) -> None:
     hint = ("expected a lerobot checkpoint directory with config.json, model.safetensors and "
             "policy_preprocessor.json/policy_postprocessor.json (so101-sim train writes the "
             "final one to RUN/pretrained_model, lerobot-train to "
             "outputs/train/<run>/checkpoints/<step>/pretrained_model), or --policy expert")
-    near = nearby_policies(path)
+    near = nearby_policies(path) or shipped_named(path)
     if near:
         hint = f"did you mean --policy {' or --policy '.join(map(str, near))}? " + hint
     if not path.is_dir():
