@@ -97,6 +97,25 @@ def test_compare_cli_writes_json_and_markdown(tmp_path, capsys):
     assert "exact McNemar p" in out and "Newcombe" in out
 
 
+def test_the_images_line_stays_in_its_cell_of_the_comparison_table(tmp_path, capsys):
+    """The default path's images line has "mean |diff| 0.26"; it split compare.md's rows."""
+    import re
+
+    runs = [_fake_run(tmp_path, name, {s: True for s in range(100_000, 100_004)})
+            for name in ("cand", "base")]
+    for run in runs:
+        info = json.loads((run / "eval_info.json").read_text())
+        info["config"]["images"] = "reduced: ...; mean |diff| 0.26, p99 5"
+        (run / "eval_info.json").write_text(json.dumps(info))
+    assert main(["compare", *map(str, runs), "--out", str(tmp_path / "cmp")]) == 0
+    md = (tmp_path / "cmp" / "compare.md").read_text()
+    rows = [x for x in md.splitlines() if x.startswith(("| A |", "| B |"))]
+    assert len(rows) == 2
+    for row in rows:  # run, policy, images, success, interval, folder
+        assert len(re.split(r"(?<!\\)\|", row)) == 8, row
+    assert "mean \\|diff\\| 0.26" in md
+
+
 def test_one_seed_is_one_seed(tmp_path, capsys):
     """A one-episode smoke run was "paired on 1 seeds"; counts in user lines agree in number."""
     from so101_sim.utils.text import counted, seed_span

@@ -136,6 +136,33 @@ def test_padded_rows_do_not_depend_on_batch_mates(tiny_ckpt):
 
 
 # ------------------------------------------------------------------------ outputs and resume
+REDUCED = ("reduced: rendered at 240x320 (mesh detail of the recorded 640 px width), "
+           "resize_frames to 60x80; vs the faithful 480x640: mean |diff| 0.26, p99 5, max 32 "
+           "grey levels over 8 frames")  # what the default path says of the shipped policy
+
+
+def test_a_pipe_in_a_value_stays_inside_its_table_cell(tmp_path):
+    """The images line of the default path, "mean |diff| 0.26", split report.md's table row."""
+    import re
+
+    from so101_sim.harness.report import write_report
+    from so101_sim.harness.results import check_record
+
+    out = tmp_path / "run"
+    assert main(["eval", "--policy", "expert", "--episodes", "2", "--n-envs", "1", "--videos",
+                 "0", "--image-size", "48x64", "--out", str(out)]) == 0
+    info = json.loads((out / "eval_info.json").read_text())
+    records = [check_record(json.loads(x), "episodes.jsonl")
+               for x in (out / "episodes.jsonl").read_text().splitlines()]
+    info["config"]["images"] = REDUCED
+    md = write_report(out, info, records).read_text()
+    table = [x for x in md.splitlines() if x.startswith("|")]
+    assert len(table) > 8
+    for row in table:  # "| key | value |": 2 cells, whatever the value holds
+        assert len(re.split(r"(?<!\\)\|", row)) == 4, row
+    assert "| images | reduced: rendered at 240x320" in md and "mean \\|diff\\| 0.26" in md
+
+
 def test_outputs_videos_report_and_resume(tmp_path, capsys):
     out = tmp_path / "run"
     code = main(["eval", "--policy", "expert", "--episodes", "5", "--n-envs", "2",

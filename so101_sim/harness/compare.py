@@ -17,7 +17,7 @@ from typing import Any
 from so101_sim.harness.results import EPISODES, INFO, check_eval_info
 from so101_sim.harness.stats import mcnemar_p_value, paired_difference_interval, wilson_interval
 from so101_sim.utils.atomic import write_json_atomic, write_text_atomic
-from so101_sim.utils.text import counted
+from so101_sim.utils.text import counted, md_row
 from so101_sim.utils.versions import SETUP_KEYS, setup_differences
 
 JSON_NAME = "compare.json"
@@ -269,9 +269,9 @@ def verdict(r: dict[str, Any], alpha: float = 0.05) -> str:
 def markdown(r: dict[str, Any]) -> str:
     p, a, b = r["paired"], r["a"], r["b"]
     lo, hi = r["difference_ci95_pp"]
-    rows = [f"| {k.upper()} | {s['policy']} (`{s['policy_fingerprint']}`) | {s['images']} | "
-            f"{s['n_success']}/{s['n_episodes']} = {s['pc_success']:.1f}% | "
-            f"{s['success_ci95'][0]:.1f}-{s['success_ci95'][1]:.1f}% | `{s['run']}` |"
+    rows = [md_row(k.upper(), f"{s['policy']} (`{s['policy_fingerprint']}`)", s["images"],
+                   f"{s['n_success']}/{s['n_episodes']} = {s['pc_success']:.1f}%",
+                   f"{s['success_ci95'][0]:.1f}-{s['success_ci95'][1]:.1f}%", f"`{s['run']}`")
             for k, s in (("a", a), ("b", b))]
     lines = [
         f"# Paired comparison: {a['policy']} (A) vs {b['policy']} (B)", "",

@@ -28,6 +28,7 @@ from so101_sim.train.checkpoint import (
     ranges_text,
 )
 from so101_sim.utils.locks import folder_lock
+from so101_sim.utils.text import md_row
 from so101_sim.utils.trust import check_processor_files
 
 
@@ -85,9 +86,9 @@ def _eval_rows(eval_info: dict, label: str) -> list[str]:
     agg, cfg = eval_info["aggregated"], eval_info["config"]
     lo, hi = agg["success_ci95"]
     modes = ", ".join(f"{k} {v}" for k, v in sorted(agg.get("failure_modes", {}).items()))
-    return [f"| {label} | **{agg['pc_success']:.1f}%** (95% Wilson [{lo:.1f}, {hi:.1f}]) on "
-            f"{agg['n_episodes']} evaluation seeds from {cfg['seed_start']}; outcomes: "
-            f"{modes or 'n/a'}; images: {cfg.get('images', 'n/a')} |"]
+    return [md_row(label, f"**{agg['pc_success']:.1f}%** (95% Wilson [{lo:.1f}, {hi:.1f}]) on "
+                   f"{agg['n_episodes']} evaluation seeds from {cfg['seed_start']}; outcomes: "
+                   f"{modes or 'n/a'}; images: {cfg.get('images', 'n/a')}")]
 
 
 def _recording_note(dataset: str) -> str:

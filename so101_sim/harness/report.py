@@ -9,7 +9,7 @@ from typing import Any
 
 from so101_sim.harness.results import EpisodeRecord
 from so101_sim.utils.atomic import write_text_atomic
-from so101_sim.utils.text import counted
+from so101_sim.utils.text import counted, md_row
 
 
 def write_report(out_dir: str | Path, result: dict[str, Any],
@@ -32,7 +32,7 @@ def write_report(out_dir: str | Path, result: dict[str, Any],
         "| item | value |",
         "| --- | --- |",
         f"| seeds | {cfg['seed_start']}..{cfg['seed_start'] + cfg['episodes'] - 1} |",
-        f"| images | {cfg['images']} |",
+        md_row("images", cfg["images"]),
         f"| failure modes | {_modes(agg['failure_modes'])} |",
         f"| avg episode length | {agg['avg_episode_len']:.1f} steps |",
         f"| avg sum / max reward | {agg['avg_sum_reward']:.3f} / {agg['avg_max_reward']:.3f} |",
@@ -43,12 +43,12 @@ def write_report(out_dir: str | Path, result: dict[str, Any],
     ]
     lines += _worker_rows(cfg)
     for key, value in cfg.get("policy_details", {}).items():
-        lines.append(f"| {key} | {value} |")
+        lines.append(md_row(key, value))
     lines.append(f"| policy fingerprint | `{cfg['policy_fingerprint']}` |")
     if cfg.get("software"):  # what else the numbers depend on
         soft = ", ".join(f"{k} {v}" for k, v in cfg["software"].items() if v)
         isa = f" (torch kernels: {cfg['cpu_isa']})" if cfg.get("cpu_isa") else ""
-        lines.append(f"| software / CPU | {soft} / {cfg.get('cpu', '?')}{isa} |")
+        lines.append(md_row("software / CPU", f"{soft} / {cfg.get('cpu', '?')}{isa}"))
     if cfg.get("video_paths"):
         lines += ["", "## Videos", ""]
         lines += [f"- [{Path(p).name}]({os.path.relpath(Path(p).resolve(), out.resolve())})"
@@ -68,8 +68,8 @@ def _worker_rows(cfg: dict[str, Any]) -> list[str]:
             where += f", {w['restarts']} replaced after dying"
         rows.append(f"| env workers | {where} |")
     for r in cfg.get("reruns", []):
-        rows.append(f"| re-run | seed {r['seed']}: {r['error']} (run again; the result "
-                    "counted is the re-run's) |")
+        rows.append(md_row("re-run", f"seed {r['seed']}: {r['error']} (run again; the "
+                                     "result counted is the re-run's)"))
     return rows
 
 

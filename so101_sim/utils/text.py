@@ -5,7 +5,7 @@ from __future__ import annotations
 import difflib
 from collections.abc import Iterable
 
-__all__ = ["counted", "did_you_mean", "seed_span"]
+__all__ = ["counted", "did_you_mean", "md_row", "seed_span"]
 
 
 def counted(n: int, noun: str, plural: str | None = None) -> str:
@@ -22,3 +22,9 @@ def did_you_mean(text: str, names: Iterable[str]) -> str:
     """" (did you mean 'stack'?)" for the one of `names` close to a misspelt `text`, else ""."""
     near = difflib.get_close_matches(text, list(names), n=1)
     return f" (did you mean {near[0]!r}?)" if near else ""
+
+
+def md_row(*cells: object) -> str:
+    """One markdown table row; a `|` inside a cell (e.g. "mean |diff| 0.26") is escaped, where
+    it would otherwise split the cell and push the rest of the row out of the table."""
+    return "| " + " | ".join(str(c).replace("|", "\\|").replace("\n", " ") for c in cells) + " |"
