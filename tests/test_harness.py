@@ -77,6 +77,9 @@ def test_diffusion_results_do_not_depend_on_n_envs(tiny_ckpt, short, tmp_path):
     for k in (1, 4):  # the padding is named once, with the --n-envs that avoids it
         assert sum("the rest is padding" in line and "--n-envs 8" in line
                    for line in logs[k]) == 1, logs[k]
+    said = {k: next(x for x in logs[k] if "the rest is padding" in x) for k in (1, 4)}
+    assert "1 env fills at most 1 of each 8-row" in said[1]  # not "1 env(s) fill"
+    assert "4 envs fill at most 4 of each 8-row" in said[4]
     # every chunk is one row whatever the envs; one env pads each forward with 7 copies
     rows = {k: r["config"]["policy_rows"] for k, r in runs.items()}
     assert rows[1]["used"] == rows[4]["used"] > 0

@@ -443,7 +443,7 @@ def test_init_from_another_image_size_rebuilds_only_the_softmax_grid(tmp_path: P
     policy = load_weights(load_config(large), large)
     grids = {k: v.clone() for k, v in policy.state_dict().items() if k.endswith("pos_grid")}
     init_weights_from(policy, small)
-    assert "1 spatial-softmax coordinate grid(s) are rebuilt" in capsys.readouterr().out
+    assert "1 spatial-softmax coordinate grid is rebuilt" in capsys.readouterr().out
     want, got = _weights(small), policy.state_dict()
     assert grids and all(tuple(want[k].shape) != tuple(g.shape) for k, g in grids.items())
     for key, value in got.items():

@@ -68,7 +68,7 @@ def test_a_two_camera_checkpoint_widens_to_three_without_changing_its_actions(
     new = load_weights(load_config(three), three)
     started = init_weights_from(new, two)
     assert started["added_cameras"] == ["observation.images.wrist"]
-    assert "without camera(s) wrist; they enter the U-Net's conditioning through zero" in (
+    assert "without the wrist camera; it enters the U-Net's conditioning through zero" in (
         capsys.readouterr().out)
 
     gen = torch.Generator().manual_seed(0)

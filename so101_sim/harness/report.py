@@ -63,7 +63,8 @@ def _worker_rows(cfg: dict[str, Any]) -> list[str]:
     w = cfg.get("workers")
     rows = []
     if w and w.get("workers"):
-        where = f"{w['backend']} backend, {w['workers']} workers on {w['nodes']} node(s)"
+        where = f"{w['backend']} backend, {counted(w['workers'], 'worker')} on "
+        where += counted(w["nodes"], "node")
         if w.get("restarts"):
             where += f", {w['restarts']} replaced after dying"
         rows.append(f"| env workers | {where} |")

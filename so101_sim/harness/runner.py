@@ -236,8 +236,11 @@ def _open_rollouts(sink: Any, resume: bool, done: dict[int, EpisodeRecord],
     open_sink(sink, resume)
     missing = sorted(s for s in done if not sink.has(s))
     if missing:
-        log(f"so101-sim eval: {len(missing)} finished episode(s) are not in --save-rollouts "
-            f"{save_rollouts} (first: seed {missing[0]}); running them again to record them")
+        are = "is" if len(missing) == 1 else "are"
+        log(f"so101-sim eval: {counted(len(missing), 'finished episode')} {are} not in "
+            f"--save-rollouts {save_rollouts} (first: seed {missing[0]}); running "
+            f"{'it' if len(missing) == 1 else 'them'} again to record "
+            f"{'it' if len(missing) == 1 else 'them'}")
     return {s: r for s, r in done.items() if s not in missing}
 
 
@@ -262,9 +265,10 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
     failures: Counter[int] = Counter()
     pad_to = int(getattr(policy, "batch_size", 0) or 0)
     if n_envs < pad_to:
-        log(f"so101-sim eval: {n_envs} env(s) fill at most {n_envs} of each {pad_to}-row policy "
-            f"forward, the rest is padding (actions per seed stay those of any --n-envs); "
-            f"--n-envs {pad_to} or more puts those rows to use")
+        fill = "fills" if n_envs == 1 else "fill"
+        log(f"so101-sim eval: {counted(n_envs, 'env')} {fill} at most {n_envs} of each "
+            f"{pad_to}-row policy forward, the rest is padding (actions per seed stay those "
+            f"of any --n-envs); --n-envs {pad_to} or more puts those rows to use")
     bar = tqdm(total=episodes, initial=len(done), unit="ep", disable=not progress,
                dynamic_ncols=True)
     n_run = 0

@@ -18,6 +18,7 @@ from so101_sim.dataset.schema import EVAL_SEED_START
 from so101_sim.tasks import available_tasks, load_task
 from so101_sim.train.widen import widen_conditioning, widen_keypoints
 from so101_sim.utils.paths import policy_dir
+from so101_sim.utils.text import counted
 from so101_sim.utils.trust import check_processor_files
 
 #: The sidecar ``train`` writes beside each checkpoint's weights.
@@ -274,12 +275,15 @@ def init_weights_from(policy: Any, path: str | Path) -> dict[str, Any]:
               "exactly the checkpoint's actions and learns to use them")
     if added:
         names = ", ".join(k.rsplit(".", 1)[-1] for k in added)
-        print(f"so101-sim train: {path} was trained without camera(s) {names}; they enter the "
-              "U-Net's conditioning through zero weights, so the run starts from exactly the "
-              "checkpoint's actions and learns to use them")
+        one = len(added) == 1
+        print(f"so101-sim train: {path} was trained without the {names} "
+              f"{'camera; it enters' if one else 'cameras; they enter'} the U-Net's "
+              "conditioning through zero weights, so the run starts from exactly the "
+              f"checkpoint's actions and learns to use {'it' if one else 'them'}")
     if regridded:
         print(f"so101-sim train: {path} was trained on another image size; its "
-              f"{len(regridded)} spatial-softmax coordinate grid(s) are rebuilt for this "
+              f"{counted(len(regridded), 'spatial-softmax coordinate grid')} "
+              f"{'is' if len(regridded) == 1 else 'are'} rebuilt for this "
               "preset's (a fixed grid, not learned); every learned weight carries over")
     try:
         policy.load_state_dict(tensors, strict=True)
