@@ -164,6 +164,7 @@ def test_a_pipe_in_a_value_stays_inside_its_table_cell(tmp_path):
     for row in table:  # "| key | value |": 2 cells, whatever the value holds
         assert len(re.split(r"(?<!\\)\|", row)) == 4, row
     assert "| images | reduced: rendered at 240x320" in md and "mean \\|diff\\| 0.26" in md
+    assert "| env workers | local backend, 1 worker on 1 node |" in md  # not "1 workers"
 
 
 def test_outputs_videos_report_and_resume(tmp_path, capsys):
