@@ -509,6 +509,25 @@ def _run_with_checkpoints(run: Path, steps: list[int]) -> Path:
     return run
 
 
+@pytest.mark.parametrize("typed, said", [
+    ("nowhere", "does not exist; pass the --out folder"),
+    ("RUN/checkpoints/step_0000004/pretrained_model",
+     "is one checkpoint of the run RUN (did you mean `so101-sim curve RUN`?); pass"),
+    ("RUN/checkpoints/step_0000004", "is one checkpoint of the run RUN (did you mean"),
+    (".", "holds no checkpoints/step_*/pretrained_model; pass the --out folder"),
+])
+def test_curve_of_what_is_not_a_run_says_what_it_is(typed: str, said: str, tmp_path: Path,
+                                                     monkeypatch, capsys) -> None:
+    """A missing path was said to "hold no checkpoints"; a checkpoint given for its run was
+    not named as one."""
+    from so101_sim.cli import main
+
+    _run_with_checkpoints(tmp_path / "RUN", [4])
+    monkeypatch.chdir(tmp_path)
+    assert main(["curve", typed]) == 2
+    assert f"so101-sim curve: error: {typed} {said}" in capsys.readouterr().err
+
+
 def test_a_ctrl_c_lost_in_a_gc_callback_still_stops_the_curve(tmp_path, monkeypatch,
                                                               lose_a_ctrl_c) -> None:
     """Python drops an exception raised in a weakref callback: a Ctrl-C landing there ran the

@@ -66,6 +66,16 @@ def read_curve(run: Path, task: str | None = None,
     return sorted(rows, key=lambda r: r["step"])
 
 
+def _not_a_run(path: Path) -> str:
+    """Why `path` has no curve to draw, naming the run folder above a checkpoint given."""
+    if not path.exists():
+        return "does not exist"
+    run = next((p for p in path.parents[:3] if run_checkpoints(p)), None)
+    if run is not None:
+        return (f"is one checkpoint of the run {run} (did you mean `so101-sim curve {run}`?)")
+    return "holds no checkpoints/step_*/pretrained_model"
+
+
 def evaluate_curve(run: str | Path, *, episodes: int = 32, every: int = 0, n_envs: int = 16,
                    seed_start: int = 100_000, steps: list[int] | None = None,
                    task: str = DEFAULT_TASK, progress: bool = True,
@@ -76,8 +86,8 @@ def evaluate_curve(run: str | Path, *, episodes: int = 32, every: int = 0, n_env
     run = Path(run)
     checkpoints = run_checkpoints(run)
     if not checkpoints:
-        raise ValueError(f"{run} holds no checkpoints/step_*/pretrained_model; pass the --out "
-                         "folder of a `so101-sim train` run")
+        raise ValueError(f"{run} {_not_a_run(run)}; pass the --out folder of a `so101-sim "
+                         "train` run")
     check_choice(run, [s for s, _ in checkpoints], every, steps)
     with folder_lock(run, "the learning curve", again="rerun", name=CURVE_LOCK):
         _evaluate_missing(run, checkpoints, episodes, every, n_envs, seed_start, steps, task,
