@@ -365,6 +365,22 @@ def test_bad_dart_noise_is_refused(tmp_path: Path, bad: float) -> None:
     assert not (tmp_path / "ds").exists()
 
 
+def test_an_odd_image_side_is_refused_before_the_dataset_exists(tmp_path: Path, capsys) -> None:
+    """4:2:0 video needs even sides: lerobot's encoder thread crashed on the first episode
+    with "avcodec_open2(libx264)", after the dataset folder was made. Also for the rollouts
+    dataset of `eval --save-rollouts`."""
+    assert main(["record", "--episodes", "1", "--out", str(tmp_path / "ds"),
+                 "--image-size", "61x80"]) == 2
+    assert ("--image-size 61x80 has an odd side; a dataset stores each camera as 4:2:0 video "
+            "(H.264 or AV1), whose frames need even sides: use 60x80") in capsys.readouterr().err
+    assert not (tmp_path / "ds").exists()
+    assert main(["eval", "--policy", "expert", "--episodes", "1", "--image-size", "48x63",
+                 "--save-rollouts", str(tmp_path / "roll"), "--out", str(tmp_path / "ev")]) == 2
+    assert ("--save-rollouts: the render size 48x63 has an odd side; a dataset stores each "
+            "camera as 4:2:0 video") in capsys.readouterr().err
+    assert not (tmp_path / "roll").exists() and not (tmp_path / "ev").exists()
+
+
 def test_cli_names_bad_dart_noise(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code = main(["record", "--episodes", "1", "--out", str(tmp_path / "ds"),
                  "--dart-noise", "-0.5"])

@@ -126,8 +126,8 @@ def build_parsers() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argumen
     rec.add_argument("--seed-start", type=nonnegative_int, default=0,
                      help="first reset seed (0..99999)")
     rec.add_argument("--image-size", type=parse_image_size, default=None,
-                     help="HEIGHTxWIDTH of each camera (default 480x640; a resumed dataset "
-                          "keeps its own)")
+                     help="HEIGHTxWIDTH of each camera, even sides (stored as 4:2:0 video; "
+                          "default 480x640; a resumed dataset keeps its own)")
     rec.add_argument("--cameras", type=parse_cameras, default=None,
                      help="cameras to record, comma-separated from front, side, wrist "
                           "(default the task's: front,side); e.g. front,side,wrist")

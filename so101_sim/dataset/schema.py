@@ -50,6 +50,18 @@ def dataset_features(image_size: tuple[int, int], dart: bool = False,
     return feats
 
 
+def check_video_size(image_size: tuple[int, int], what: str) -> None:
+    """Refuse a frame size the video encoders cannot open (libx264 and SVT-AV1 store 4:2:0
+    frames, which need even sides), before a dataset is created: lerobot's encoder thread
+    would otherwise crash on the first episode."""
+    h, w = image_size
+    if h % 2 or w % 2:
+        even = f"{h - h % 2}x{w - w % 2}"
+        raise ValueError(f"{what} {h}x{w} has an odd side; a dataset stores each camera as "
+                         "4:2:0 video (H.264 or AV1), whose frames need even sides: use "
+                         f"{even}, e.g. --image-size {even}")
+
+
 def check_seed_range(seed_start: int, n_seeds: int = 1) -> None:
     """Refuse evaluation seeds: demos trained on them would leak into the benchmark."""
     if seed_start < 0:

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from so101_sim.dataset import EVAL_SEED_START
+from so101_sim.dataset import EVAL_SEED_START, check_video_size
 from so101_sim.dataset.interrupts import Interrupts
 from so101_sim.harness.env_worker import EnvWorkerConfig
 from so101_sim.harness.forwards import Forwards, forward_stats
@@ -134,6 +134,8 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
     sink = None
     if save_rollouts is not None:  # checked before the run folder is touched
         from so101_sim.harness.rollouts import rollout_sink
+
+        check_video_size(tuple(rendering.render_size), "--save-rollouts: the render size")
 
         sink = rollout_sink(
             save_rollouts, resume=resume, spec=spec, image_size=tuple(rendering.render_size),

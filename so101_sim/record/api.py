@@ -35,6 +35,7 @@ from so101_sim.dataset.schema import (
     EVAL_SEED_START,
     VCODECS,
     check_seed_range,
+    check_video_size,
 )
 from so101_sim.dataset.store import SCRATCH, SIDECAR, read_sidecar
 from so101_sim.record.episode import check_dart_noise, expert_options
@@ -124,6 +125,8 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path | None = None,
     _check_args(n_episodes, workers, seed_start, vcodec, checkpoint_every,
                 resume and (Path(out_dir) / SIDECAR).exists())
     check_backend(backend, ray_address)
+    if image_size is not None:  # a resumed dataset's own size was checked when it was made
+        check_video_size(tuple(image_size), "--image-size")
     if backend == "ray":  # say so before a dataset folder is created
         from so101_sim.workers.ray_pool import import_ray
 
