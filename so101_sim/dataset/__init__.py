@@ -25,6 +25,5 @@ from so101_sim.dataset.store import SIDECAR, read_sidecar
 
 __all__ = ["CAMERAS", "DEFAULT_REPO_ID", "DEFAULT_VCODEC", "EVAL_SEED_START", "ROBOT_TYPE",
            "SIDECAR", "VCODECS", "VIDEO_KEYS", "NotADatasetError", "check_seed_range",
-           "check_video_size",
-           "dataset_features", "info_features", "open_lerobot_dataset", "read_frames",
-           "read_sidecar", "stored_seeds"]
+           "check_video_size", "dataset_features", "info_features", "open_lerobot_dataset",
+           "read_frames", "read_sidecar", "stored_seeds"]

@@ -238,11 +238,10 @@ def _open_rollouts(sink: Any, resume: bool, done: dict[int, EpisodeRecord],
     open_sink(sink, resume)
     missing = sorted(s for s in done if not sink.has(s))
     if missing:
-        are = "is" if len(missing) == 1 else "are"
+        are, them = ("is", "it") if len(missing) == 1 else ("are", "them")
         log(f"so101-sim eval: {counted(len(missing), 'finished episode')} {are} not in "
-            f"--save-rollouts {save_rollouts} (first: seed {missing[0]}); running "
-            f"{'it' if len(missing) == 1 else 'them'} again to record "
-            f"{'it' if len(missing) == 1 else 'them'}")
+            f"--save-rollouts {save_rollouts} (first: seed {missing[0]}); running {them} "
+            f"again to record {them}")
     return {s: r for s, r in done.items() if s not in missing}
 
 
