@@ -662,3 +662,20 @@ def test_the_shipped_policy_typed_outside_the_checkout_is_named(typed: str, tmp_
         in err
     assert main(["eval", "--policy", "policy/no_such_policy", "--episodes", "1"]) == 2
     assert "did you mean" not in capsys.readouterr().err
+
+
+def test_a_hub_repo_id_as_policy_says_how_to_fetch_it(tmp_path: Path, capsys,
+                                                      monkeypatch) -> None:
+    """lerobot's `--policy.path=lerobot/diffusion_pusht` habit: so101-sim reads folders only
+    (nothing downloads at run time), and the error says how to get one."""
+    from so101_sim.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["eval", "--policy", "someone/so101_policy", "--episodes", "1"]) == 2
+    assert ("'someone/so101_policy' looks like a Hugging Face Hub repo id, and so101-sim loads "
+            "local folders only: fetch it once with `hf download someone/so101_policy "
+            "--local-dir so101_policy` and pass --policy so101_policy") in capsys.readouterr().err
+    (tmp_path / "runs").mkdir()  # a missing folder in a local one is a local path
+    for local in ("runs/missing", "a/b/c", "/abs/path"):
+        assert main(["eval", "--policy", local, "--episodes", "1"]) == 2
+        assert "Hub repo id" not in capsys.readouterr().err, local

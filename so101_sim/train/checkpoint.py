@@ -65,6 +65,18 @@ def shipped_named(path: Path) -> list[Path]:
     return [shipped] if (shipped / "config.json").is_file() else []
 
 
+def hub_id_hint(path: Path) -> str:
+    """For `--policy user/repo` (lerobot's --policy.path habit) that is no folder here: how to
+    fetch it once, since so101-sim reads local folders only (nothing downloads at run time)."""
+    text = str(path)
+    if (text.count("/") != 1 or path.is_absolute()
+            or path.parent.exists()):  # a local folder's missing child: not a repo id
+        return ""
+    return (f"; {text!r} looks like a Hugging Face Hub repo id, and so101-sim loads local "
+            f"folders only: fetch it once with `hf download {text} --local-dir "
+            f"{path.name}` and pass --policy {path.name}")
+
+
 def check_files(path: Path) -> None:
     hint = ("expected a lerobot checkpoint directory with config.json, model.safetensors and "
             "policy_preprocessor.json/policy_postprocessor.json (so101-sim train writes the "
@@ -74,7 +86,8 @@ def check_files(path: Path) -> None:
     if near:
         hint = f"did you mean --policy {' or --policy '.join(map(str, near))}? " + hint
     if not path.is_dir():
-        raise FileNotFoundError(f"policy checkpoint {path} not found; {hint}")
+        hub = "" if near else hub_id_hint(path)
+        raise FileNotFoundError(f"policy checkpoint {path} not found; {hint}{hub}")
     for name in ("config.json", "model.safetensors", "policy_preprocessor.json",
                  "policy_postprocessor.json"):
         if not (path / name).is_file():
