@@ -672,9 +672,15 @@ def test_a_hub_repo_id_as_policy_says_how_to_fetch_it(tmp_path: Path, capsys,
 
     monkeypatch.chdir(tmp_path)
     assert main(["eval", "--policy", "someone/so101_policy", "--episodes", "1"]) == 2
-    assert ("'someone/so101_policy' looks like a Hugging Face Hub repo id, and so101-sim loads "
+    assert ("'someone/so101_policy' looks like a Hugging Face Hub repo id, and so101-sim reads "
             "local folders only: fetch it once with `hf download someone/so101_policy "
             "--local-dir so101_policy` and pass --policy so101_policy") in capsys.readouterr().err
+    for command in (["train"], ["explain"]):  # --dataset USER/REPO: a dataset repo
+        assert main([*command, "--dataset", "someone/so101_demos", "--out", "o"]) == 2
+        assert ("'someone/so101_demos' looks like a Hugging Face Hub repo id, and so101-sim "
+                "reads local folders only: fetch it once with `hf download someone/so101_demos "
+                "--repo-type dataset --local-dir so101_demos` and pass --dataset so101_demos"
+                ) in capsys.readouterr().err, command
     (tmp_path / "runs").mkdir()  # a missing folder in a local one is a local path
     for local in ("runs/missing", "a/b/c", "/abs/path"):
         assert main(["eval", "--policy", local, "--episodes", "1"]) == 2

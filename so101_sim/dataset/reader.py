@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from so101_sim.utils.paths import hub_id_hint
+
 
 class NotADatasetError(ValueError):
     """A folder given as a dataset is not a LeRobotDataset."""
@@ -52,7 +54,8 @@ def open_lerobot_dataset(path: str | Path, flag: str = "--dataset",
     path = Path(path)
     if not (path / "meta" / "info.json").is_file():
         raise NotADatasetError(f"{flag} {str(path)!r} is not a LeRobotDataset folder (no "
-                               "meta/info.json); record one with `so101-sim record --out DIR`")
+                               "meta/info.json); record one with `so101-sim record --out DIR`"
+                               + hub_id_hint(path, flag, dataset=True))
     # PyAV: the trainer's frame cache decodes with it, so every reader sees the same frames
     try:
         return LeRobotDataset(f"local/{path.name}", root=path,

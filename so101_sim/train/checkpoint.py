@@ -17,7 +17,7 @@ from typing import Any
 from so101_sim.dataset.schema import EVAL_SEED_START
 from so101_sim.tasks import available_tasks, load_task
 from so101_sim.train.widen import widen_conditioning, widen_keypoints
-from so101_sim.utils.paths import policy_dir
+from so101_sim.utils.paths import hub_id_hint, policy_dir
 from so101_sim.utils.text import counted
 from so101_sim.utils.trust import check_processor_files
 
@@ -65,18 +65,6 @@ def shipped_named(path: Path) -> list[Path]:
     return [shipped] if (shipped / "config.json").is_file() else []
 
 
-def hub_id_hint(path: Path) -> str:
-    """For `--policy user/repo` (lerobot's --policy.path habit) that is no folder here: how to
-    fetch it once, since so101-sim reads local folders only (nothing downloads at run time)."""
-    text = str(path)
-    if (text.count("/") != 1 or path.is_absolute()
-            or path.parent.exists()):  # a local folder's missing child: not a repo id
-        return ""
-    return (f"; {text!r} looks like a Hugging Face Hub repo id, and so101-sim loads local "
-            f"folders only: fetch it once with `hf download {text} --local-dir "
-            f"{path.name}` and pass --policy {path.name}")
-
-
 def check_files(path: Path) -> None:
     hint = ("expected a lerobot checkpoint directory with config.json, model.safetensors and "
             "policy_preprocessor.json/policy_postprocessor.json (so101-sim train writes the "
@@ -86,7 +74,7 @@ def check_files(path: Path) -> None:
     if near:
         hint = f"did you mean --policy {' or --policy '.join(map(str, near))}? " + hint
     if not path.is_dir():
-        hub = "" if near else hub_id_hint(path)
+        hub = "" if near else hub_id_hint(path, "--policy")
         raise FileNotFoundError(f"policy checkpoint {path} not found; {hint}{hub}")
     for name in ("config.json", "model.safetensors", "policy_preprocessor.json",
                  "policy_postprocessor.json"):

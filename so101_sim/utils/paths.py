@@ -50,3 +50,17 @@ def foreign_folder(path: Path) -> str | None:
     if (path / "meta" / "info.json").is_file():
         return "is a LeRobotDataset (meta/info.json)"
     return None
+
+
+def hub_id_hint(path: Path, flag: str, dataset: bool = False) -> str:
+    """For a `USER/REPO` given where a folder is expected (lerobot's --policy.path and
+    --dataset.repo_id habit) and no such folder here: how to fetch it once, since so101-sim
+    reads local folders only and nothing downloads at run time. "" for anything else."""
+    text = str(path)
+    if (text.count("/") != 1 or path.is_absolute() or path.exists()
+            or path.parent.exists()):  # a local folder's missing child: not a repo id
+        return ""
+    kind = " --repo-type dataset" if dataset else ""
+    return (f"; {text!r} looks like a Hugging Face Hub repo id, and so101-sim reads local "
+            f"folders only: fetch it once with `hf download {text}{kind} --local-dir "
+            f"{path.name}` and pass {flag} {path.name}")
