@@ -647,6 +647,22 @@ def test_a_policy_path_next_to_a_policy_names_it(typed: str, meant: list[str], t
     assert (f"did you mean {' or '.join(meant)}?" in err) if meant else ("did you mean" not in err)
 
 
+def test_a_lerobot_train_run_folder_as_policy_names_its_last_checkpoint(
+        tmp_path: Path, capsys, monkeypatch) -> None:
+    """lerobot-train's outputs/train/RUN given to --policy: its checkpoints/last (a link to the
+    latest numbered step) holds the policy."""
+    from so101_sim.cli import main
+
+    model = tmp_path / "outputs/train/pp/checkpoints/005000/pretrained_model"
+    model.mkdir(parents=True)
+    (model / "config.json").write_text("{}")
+    (model.parents[1] / "last").symlink_to("005000")
+    monkeypatch.chdir(tmp_path)
+    assert main(["eval", "--policy", "outputs/train/pp", "--episodes", "1"]) == 2
+    assert ("policy checkpoint outputs/train/pp has no config.json; did you mean --policy "
+            "outputs/train/pp/checkpoints/last/pretrained_model?") in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("typed", ["policy/pick_place_diffusion", "pick_place_diffusion"])
 def test_the_shipped_policy_typed_outside_the_checkout_is_named(typed: str, tmp_path: Path,
                                                                 capsys, monkeypatch) -> None:

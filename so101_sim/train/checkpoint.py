@@ -36,9 +36,11 @@ def nearby_policies(path: Path) -> list[Path]:
     """Policy folders a user who typed `path` likely meant: the `pretrained_model` inside it (a
     run or a step folder given), or, for a path that does not exist, the final and the latest
     checkpointed policy of the nearest training run above it (`train` keeps
-    ``checkpoints/step_NNNNNNN``, with no ``last`` link as lerobot-train makes)."""
-    if (path / "pretrained_model" / "config.json").is_file():
-        return [path / "pretrained_model"]
+    ``checkpoints/step_NNNNNNN``, with no ``last`` link as lerobot-train makes). A
+    lerobot-train run folder given names its ``checkpoints/last/pretrained_model``."""
+    for inside in ("pretrained_model", "checkpoints/last/pretrained_model"):
+        if (path / inside / "config.json").is_file():
+            return [path / inside]
     if path.exists():
         return []
     existing = next((p for p in path.parents if p.is_dir()), None)
