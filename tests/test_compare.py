@@ -173,6 +173,21 @@ def test_a_run_that_stopped_early_is_named_as_one(tmp_path, capsys):
             f"verdict 'worse': that verdict, in its eval_info.json (sequential_verdict), is its "
             f"comparison with {ref}") in err
     assert "A (" not in err
+    assert "extend" not in err  # a stopped run is not extended: its test ended there
+
+
+def test_a_run_on_the_first_seeds_of_the_other_is_told_how_to_extend(tmp_path, capsys):
+    """100 seeds against 200 from the same start: `eval --resume --episodes 200` runs just the
+    missing 100, so the error says so; seeds from another start get no such line."""
+    big = _fake_run(tmp_path, "big", dict.fromkeys(range(100_000, 100_200), True))
+    small = _fake_run(tmp_path, "small", dict.fromkeys(range(100_000, 100_100), True))
+    assert main(["compare", str(big), str(small)]) == 2
+    assert (f"; to pair all 200 seeds, extend B: run its eval command again with --out {small} "
+            "--resume --episodes 200 (the 100 seeds already run are kept)"
+            ) in capsys.readouterr().err
+    shifted = _fake_run(tmp_path, "shifted", dict.fromkeys(range(100_050, 100_100), True))
+    assert main(["compare", str(shifted), str(big)]) == 2
+    assert "extend" not in capsys.readouterr().err
 
 
 class _Rest:

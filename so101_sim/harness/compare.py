@@ -176,7 +176,22 @@ def check_comparable(a: RunSide, b: RunSide) -> None:
                    if run.sequential is not None and other_seeds]
         raise ValueError(f"cannot compare {a.path} (A) with {b.path} (B) seed by seed: "
                          + "; ".join(problems + stopped) + ". Evaluate both with the same "
-                         "--task, --seed-start and --episodes")
+                         "--task, --seed-start and --episodes" + _extend_hint(a, b))
+
+
+def _extend_hint(a: RunSide, b: RunSide) -> str:
+    """When one run's seeds are the first ones of the other's, `eval --resume` with more
+    --episodes runs just the missing ones (the seeds already run are kept)."""
+    if a.task != b.task:
+        return ""
+    for short, name, long in ((a, "A", b), (b, "B", a)):
+        seeds, wanted = set(short.success), sorted(long.success)
+        if (short.sequential is None and seeds and seeds < set(wanted)
+                and min(seeds) == wanted[0] and wanted[-1] == wanted[0] + len(wanted) - 1):
+            return (f"; to pair all {len(long.success)} seeds, extend {name}: run its eval "
+                    f"command again with --out {short.path} --resume --episodes "
+                    f"{len(long.success)} (the {len(short.success)} seeds already run are kept)")
+    return ""
 
 
 def compare_runs(run_a: str | Path, run_b: str | Path,
