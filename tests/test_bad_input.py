@@ -633,6 +633,7 @@ def test_a_policy_path_next_to_a_policy_names_it(typed: str, meant: list[str], t
     for model in (*run.glob("checkpoints/*/pretrained_model"), run / "pretrained_model"):
         model.mkdir(exist_ok=True)
         (model / "config.json").write_text("{}")
+        (model / "so101_sim_train.json").write_text("{}")  # what export also needs
     monkeypatch.chdir(tmp_path)
     assert main(["eval", "--policy", typed, "--episodes", "1"]) == 2
     err = capsys.readouterr().err
@@ -661,6 +662,9 @@ def test_a_lerobot_train_run_folder_as_policy_names_its_last_checkpoint(
     assert main(["eval", "--policy", "outputs/train/pp", "--episodes", "1"]) == 2
     assert ("policy checkpoint outputs/train/pp has no config.json; did you mean --policy "
             "outputs/train/pp/checkpoints/last/pretrained_model?") in capsys.readouterr().err
+    assert main(["export", "outputs/train/pp"]) == 2  # not one export takes: not suggested
+    err = capsys.readouterr().err
+    assert "is not a so101-sim checkpoint" in err and "did you mean" not in err
 
 
 @pytest.mark.parametrize("typed", ["policy/pick_place_diffusion", "pick_place_diffusion"])

@@ -315,7 +315,9 @@ def export_policy(checkpoint: Path, dest: Path,
     checkpoint, dest = Path(checkpoint), Path(dest)
     info_path = checkpoint / TRAIN_INFO
     if not (checkpoint / "model.safetensors").is_file() or not info_path.is_file():
-        near = " or ".join(map(str, nearby_policies(checkpoint)))
+        # only folders export takes: a lerobot-train checkpoint has no so101-sim sidecar
+        near = " or ".join(str(p) for p in nearby_policies(checkpoint)
+                           if (p / TRAIN_INFO).is_file())
         raise FileNotFoundError(f"{checkpoint} is not a so101-sim checkpoint (needs "
                                 f"model.safetensors and {TRAIN_INFO}); "
                                 + (f"did you mean {near}?" if near else
