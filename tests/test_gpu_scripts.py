@@ -137,7 +137,7 @@ class Block:
 sys.meta_path.insert(0, Block())
 sys.path.insert(0, sys.argv[1])
 import train_without_pyav
-train_without_pyav.install_stand_in()
+print("stand-in folder:", train_without_pyav.install_stand_in())
 from so101_sim.dataset.reader import open_lerobot_dataset
 from so101_sim.train.frame_cache import decode_camera
 ds = open_lerobot_dataset(sys.argv[2])
@@ -156,6 +156,8 @@ def test_the_stand_in_decodes_what_pyav_decodes(packed, tmp_path: Path) -> None:
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
     assert "PyAV is missing: the frame cache decodes with OpenCV" in run.stdout
+    folder = Path(run.stdout.split("stand-in folder: ")[1].split()[0])
+    assert folder.name.startswith("av_stand_in_") and not folder.exists()  # none left in /tmp
     ds = open_lerobot_dataset(out)
     expected = decode_camera(ds, ds.meta.video_keys[0], SIZE)
     np.testing.assert_array_equal(np.load(got), expected)
@@ -169,7 +171,7 @@ def test_with_pyav_present_the_stand_in_steps_aside() -> None:
         sys.path.remove(str(GPU))
     import av
 
-    train_without_pyav.install_stand_in()
+    assert train_without_pyav.install_stand_in() is None
     assert sys.modules["av"] is av and hasattr(av, "VideoFrame")
 
 

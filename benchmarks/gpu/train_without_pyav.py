@@ -12,7 +12,10 @@ nothing.
 
 from __future__ import annotations
 
+import atexit
 import importlib.machinery
+import os
+import shutil
 import sys
 import tempfile
 import types
@@ -112,21 +115,26 @@ def write_package(site: str | Path) -> Path:
     return package
 
 
-def install_stand_in() -> None:
-    """Make `import av` give the OpenCV stand-in, unless PyAV itself imports."""
+def install_stand_in() -> Path | None:
+    """Make `import av` give the OpenCV stand-in, unless PyAV itself imports. Returns the
+    temporary folder of its version record (removed when this process exits), else None."""
     try:
         import av  # noqa: F401
-        return
+        return None
     except ImportError:
         pass
     sys.modules["av"] = stand_in_module()
     # lerobot.datasets asks importlib.metadata for av's version before it imports anything
-    meta = Path(tempfile.mkdtemp(prefix="av_stand_in_")) / "av-0.0.0.dist-info"
+    folder = Path(tempfile.mkdtemp(prefix="av_stand_in_"))
+    owner = os.getpid()  # forked workers inherit the hook; only this process removes it
+    atexit.register(lambda: os.getpid() == owner and shutil.rmtree(folder, ignore_errors=True))
+    meta = folder / "av-0.0.0.dist-info"
     meta.mkdir()
     (meta / "METADATA").write_text("Metadata-Version: 2.1\nName: av\nVersion: 0.0.0\n")
     sys.path.append(str(meta.parent))
     print("PyAV is missing: the frame cache decodes with OpenCV (benchmarks/gpu/"
           "train_without_pyav.py)", flush=True)
+    return folder
 
 
 def main() -> int:
