@@ -68,20 +68,25 @@ def shipped_named(path: Path) -> list[Path]:
 
 
 def check_files(path: Path) -> None:
+    if not path.is_dir():
+        raise FileNotFoundError(f"policy checkpoint {path} not found; {_files_hint(path)}")
+    for name in ("config.json", "model.safetensors", "policy_preprocessor.json",
+                 "policy_postprocessor.json"):
+        if not (path / name).is_file():
+            raise FileNotFoundError(f"policy checkpoint {path} has no {name}; "
+                                    f"{_files_hint(path)}")
+
+
+def _files_hint(path: Path) -> str:
+    """What to pass instead of `path`; only built on a failed check (it searches nearby)."""
     hint = ("expected a lerobot checkpoint directory with config.json, model.safetensors and "
             "policy_preprocessor.json/policy_postprocessor.json (so101-sim train writes the "
             "final one to RUN/pretrained_model, lerobot-train to "
             "outputs/train/<run>/checkpoints/<step>/pretrained_model), or --policy expert")
     near = nearby_policies(path) or shipped_named(path)
     if near:
-        hint = f"did you mean --policy {' or --policy '.join(map(str, near))}? " + hint
-    if not path.is_dir():
-        hub = "" if near else hub_id_hint(path, "--policy")
-        raise FileNotFoundError(f"policy checkpoint {path} not found; {hint}{hub}")
-    for name in ("config.json", "model.safetensors", "policy_preprocessor.json",
-                 "policy_postprocessor.json"):
-        if not (path / name).is_file():
-            raise FileNotFoundError(f"policy checkpoint {path} has no {name}; {hint}")
+        return f"did you mean --policy {' or --policy '.join(map(str, near))}? " + hint
+    return hint + hub_id_hint(path, "--policy")
 
 
 def load_config(path: Path) -> Any:
