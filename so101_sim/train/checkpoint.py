@@ -90,6 +90,7 @@ def _files_hint(path: Path) -> str:
 
 
 def load_config(path: Path) -> Any:
+    import draccus
     import lerobot.policies  # noqa: F401  (registers the policy config types)
     from lerobot.configs.policies import PreTrainedConfig
 
@@ -99,8 +100,14 @@ def load_config(path: Path) -> Any:
     except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as exc:
         raise ValueError(f"{path / 'config.json'} is not a lerobot policy config ({exc!r}); "
                          "re-export the checkpoint with policy.save_pretrained()") from exc
+    # lerobot's PreTrainedConfig.from_pretrained copies the config to a NamedTemporaryFile
+    # (delete=False) that it never removes: one /tmp/tmp*.json per load. draccus.decode of the
+    # same fields builds the same config (same errors too) and leaves nothing behind.
+    fields = {key: value for key, value in raw.items() if key != "type"}
     try:
-        return PreTrainedConfig.from_pretrained(path)
+        config_cls = PreTrainedConfig.get_choice_class(policy_type)
+        with draccus.config_type("json"):
+            return draccus.decode(config_cls, fields)
     except Exception as exc:
         raise ValueError(f"{path / 'config.json'} (policy type {policy_type!r}) could not be "
                          f"parsed by lerobot: {exc}") from exc
