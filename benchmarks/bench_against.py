@@ -14,7 +14,12 @@ own RMS (seed 0). Steps, all with the harness defaults (render path, 8 envs), se
    each: wall time of the whole command, episodes used and the verdict (target: "worse" in
    <= 60 s median, "not worse" in about the same);
 4. the same test replayed offline over 2000 random orders of the 200 measured pairs: the
-   median and 90th percentile of episodes used, so one lucky seed order does not decide.
+   median and 90th percentile of episodes used, so one lucky seed order does not decide;
+5. with `--windows K`: K more windows of 200 seeds (100200.., 100400.., ...), each with its
+   own reference run of CHECKPOINT and full run of the weakened one (kept in --out and reused)
+   and one `--against` run of each policy: the median wall over the windows is measured, not
+   inferred from one seed order, and the weakened checkpoint's drop is pooled over all seeds
+   (one window's 200 seeds put it within about +-6 points).
 """
 
 from __future__ import annotations
@@ -101,6 +106,8 @@ def main() -> None:
     parser.add_argument("--reference", default=None,
                         help="an earlier 200-seed run of CHECKPOINT (default: run it)")
     parser.add_argument("--out", default=None)
+    parser.add_argument("--windows", type=int, default=0,
+                        help="more 200-seed windows to run step 3 on (see step 5)")
     args = parser.parse_args()
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -145,6 +152,54 @@ def main() -> None:
         counts = {v: int((verdicts == v).sum()) for v in sorted(set(verdicts.tolist()))}
         print(f"4. 2000 random orders of the 200 pairs, {name}: verdicts {counts}; episodes "
               f"used median {int(np.median(used))}, p90 {int(np.percentile(used, 90))}")
+    if args.windows > 0:
+        other_windows(work, ckpt, weak, args.windows, int(n), rows, (ref_out, weak_out))
+
+
+def other_windows(work: Path, ckpt: Path, weak: Path, windows: int, n: int,
+                  rows: dict[str, tuple[list, list, list]],
+                  first: tuple[dict[int, bool], dict[int, bool]]) -> None:
+    """Step 5: step 3 once per further window of `n` seeds (the medians include step 3's), and
+    the weakened checkpoint's full run of each window, so its drop is pooled over all."""
+    from so101_sim.harness.stats import mcnemar_p_value, paired_difference_interval
+
+    walls = {name: [statistics.median(rows[name][0])] for name in rows}
+    verdicts = {name: [rows[name][2][0]] for name in rows}
+    ref_all, weak_all = dict(first[0]), dict(first[1])
+    for k in range(1, windows + 1):
+        start = str(100000 + k * n)
+        ref, weak_full = work / f"reference_{start}", work / f"weak_full_{start}"
+        for policy, folder in ((ckpt, ref), (weak, weak_full)):
+            if not (folder / "eval_info.json").exists():
+                run(eval_cmd(policy, folder, "--episodes", str(n), "--seed-start", start))
+        ref_all.update(outcomes(ref))
+        weak_all.update(outcomes(weak_full))
+        cells = []
+        for name, policy in (("weakened", weak), ("itself", ckpt)):
+            out = work / f"against_{name}_{start}"
+            shutil.rmtree(out, ignore_errors=True)
+            wall = run(eval_cmd(policy, out, "--against", str(ref)))
+            v = json.loads((out / "eval_info.json").read_text())["sequential_verdict"]
+            walls[name].append(wall)
+            verdicts[name].append(v["verdict"])
+            cells.append(f"{name} {v['verdict']} after {v['episodes']} in {wall:.1f} s")
+        print(f"5. seeds {start}..{int(start) + n - 1}: " + "; ".join(cells))
+    seeds = sorted(set(ref_all) & set(weak_all))
+    a = [ref_all[s] for s in seeds]
+    b = [weak_all[s] for s in seeds]
+    both = sum(x and y for x, y in zip(a, b, strict=True))
+    only_a, only_b = sum(a) - both, sum(b) - both
+    lo, hi = paired_difference_interval(both, only_a, only_b, len(seeds) - both - only_a - only_b)
+    print(f"5. pooled over {len(seeds)} seeds: reference {sum(a)}, weakened {sum(b)}: "
+          f"{100 * (sum(a) - sum(b)) / len(seeds):+.1f} points ({100 * lo:+.1f} to "
+          f"{100 * hi:+.1f}), McNemar p = {mcnemar_p_value(only_a, only_b):.2g}")
+    for name in walls:
+        counts = {v: verdicts[name].count(v) for v in sorted(set(verdicts[name]))}
+        print(f"5. {len(walls[name])} windows, {name}: verdicts {counts}; wall median "
+              f"{statistics.median(walls[name]):.1f} s ("
+              f"{', '.join(f'{w:.1f}' for w in walls[name])})"
+              + ("  [target: worse in <= 60 s median]" if name == "weakened" else ""))
+
 
 if __name__ == "__main__":
     main()
