@@ -19,7 +19,8 @@ own RMS (seed 0). Steps, all with the harness defaults (render path, 8 envs), se
    own reference run of CHECKPOINT and full run of the weakened one (kept in --out and reused)
    and one `--against` run of each policy: the median wall over the windows is measured, not
    inferred from one seed order, and the weakened checkpoint's drop is pooled over all seeds
-   (one window's 200 seeds put it within about +-6 points).
+   (one window's 200 seeds put it within about +-6 points), with the test replayed on random
+   200-seed draws from the pooled pairs.
 """
 
 from __future__ import annotations
@@ -156,6 +157,23 @@ def main() -> None:
         other_windows(work, ckpt, weak, args.windows, int(n), rows, (ref_out, weak_out))
 
 
+def pooled_draws(ref: dict[int, bool], new: dict[int, bool], n: int, draws: int = 4000) -> str:
+    """The test on `draws` random `n`-seed draws from all the pooled pairs: what a window of
+    `n` seeds does on average, without one window's luck."""
+    from so101_sim.harness.sequential import batch_verdicts
+
+    seeds = sorted(set(ref) & set(new))
+    a = np.array([ref[s] for s in seeds], dtype=np.int64)
+    b = np.array([new[s] for s in seeds], dtype=np.int64)
+    rng = np.random.default_rng(0)
+    picks = np.stack([rng.choice(len(seeds), n, replace=False) for _ in range(draws)])
+    verdicts, used = batch_verdicts(a[picks], b[picks], margin=0.0, alpha=0.05)
+    counts = {v: int((verdicts == v).sum()) for v in sorted(set(verdicts.tolist()))}
+    p25, p50, p75 = (int(np.percentile(used, q)) for q in (25, 50, 75))
+    return (f"{draws} random {n}-seed draws from the {len(seeds)} pooled pairs, weakened: "
+            f"verdicts {counts}; episodes used median {p50} (p25 {p25}, p75 {p75})")
+
+
 def other_windows(work: Path, ckpt: Path, weak: Path, windows: int, n: int,
                   rows: dict[str, tuple[list, list, list]],
                   first: tuple[dict[int, bool], dict[int, bool]]) -> None:
@@ -193,6 +211,7 @@ def other_windows(work: Path, ckpt: Path, weak: Path, windows: int, n: int,
     print(f"5. pooled over {len(seeds)} seeds: reference {sum(a)}, weakened {sum(b)}: "
           f"{100 * (sum(a) - sum(b)) / len(seeds):+.1f} points ({100 * lo:+.1f} to "
           f"{100 * hi:+.1f}), McNemar p = {mcnemar_p_value(only_a, only_b):.2g}")
+    print("5. " + pooled_draws(ref_all, weak_all, n))
     for name in walls:
         counts = {v: verdicts[name].count(v) for v in sorted(set(verdicts[name]))}
         print(f"5. {len(walls[name])} windows, {name}: verdicts {counts}; wall median "
