@@ -58,6 +58,7 @@ def test_each_window_runs_on_its_own_seeds_and_the_median_is_over_windows(
     out = capsys.readouterr().out
     # 12 seeds: the reference wins all; the weakened one none of the first 4, then 2 of 4 twice
     assert "pooled over 12 seeds: reference 12, weakened 4: +66.7 points" in out
+    assert "4000 random 4-seed draws from the 12 pooled pairs, weakened: verdicts" in out
     # weakened: step 3's median 55.0, then 50.0 and 70.0 -> 55.0; itself: 35, 30, 40 -> 35
     assert ("3 windows, weakened: verdicts {'worse': 3}; wall median 55.0 s (55.0, 50.0, 70.0)"
             in out)
