@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
+import tempfile
 from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -37,6 +39,16 @@ def state_env():
     env = PickPlaceEnv(obs_type="state")
     yield env
     env.close()
+
+
+@pytest.fixture
+def kill_tmpdir():
+    """A TMPDIR for a process the test kills: what it had in flight (multiprocessing's pymp-*
+    folder, lerobot's temporary files) goes with this folder instead of staying in /tmp. Short,
+    since a fork server's socket path inside it must stay under 108 bytes."""
+    path = tempfile.mkdtemp(prefix="so101-kill-")
+    yield path
+    shutil.rmtree(path, ignore_errors=True)
 
 
 @pytest.fixture
