@@ -15,9 +15,10 @@ own RMS (seed 0). Steps, all with the harness defaults (render path, 8 envs), se
    <= 60 s median, "not worse" in about the same);
 4. the same test replayed offline over 2000 random orders of the 200 measured pairs: the
    median and 90th percentile of episodes used, so one lucky seed order does not decide;
-5. with `--windows K`: K more windows of 200 seeds (100200.., 100400.., ...), each with its
-   own reference run of CHECKPOINT and full run of the weakened one (kept in --out and reused)
-   and one `--against` run of each policy: the median wall over the windows is measured, not
+5. with `--windows K`: K more windows of 200 seeds after the reference's (100200..,
+   100400.., ...), each with its own reference run of CHECKPOINT and full run of the weakened
+   one (kept in --out and reused) and one `--against` run of each policy: the median wall
+   over the windows is measured, not
    inferred from one seed order, and the weakened checkpoint's drop is pooled over all seeds
    (one window's 200 seeds put it within about +-6 points), with the test replayed on random
    200-seed draws from the pooled pairs.
@@ -184,8 +185,9 @@ def other_windows(work: Path, ckpt: Path, weak: Path, windows: int, n: int,
     walls = {name: [statistics.median(rows[name][0])] for name in rows}
     verdicts = {name: [rows[name][2][0]] for name in rows}
     ref_all, weak_all = dict(first[0]), dict(first[1])
+    after = max(ref_all) + 1  # windows follow the reference's seeds, whatever its start
     for k in range(1, windows + 1):
-        start = str(100000 + k * n)
+        start = str(after + (k - 1) * n)
         ref, weak_full = work / f"reference_{start}", work / f"weak_full_{start}"
         for policy, folder in ((ckpt, ref), (weak, weak_full)):
             if not (folder / "eval_info.json").exists():

@@ -64,6 +64,12 @@ def test_each_window_runs_on_its_own_seeds_and_the_median_is_over_windows(
             in out)
     assert "3 windows, itself: verdicts {'not worse': 3}; wall median 35.0 s" in out
 
+    # windows follow the reference's seeds, wherever it starts
+    ran = _fake_runs(monkeypatch, [50.0, 30.0])
+    shifted = ({s: True for s in range(100200, 100204)}, {s: True for s in range(100200, 100204)})
+    BENCH.other_windows(tmp_path / "b", Path("ckpt"), Path("weak"), 1, 4, rows, shifted)
+    assert {c[c.index("--seed-start") + 1] for c in ran if "--against" not in c} == {"100204"}
+
     # a second call reuses the full runs already made
     ran = _fake_runs(monkeypatch, [50.0, 30.0, 70.0, 40.0])
     BENCH.other_windows(tmp_path, Path("ckpt"), Path("weak"), 2, 4, rows, first)
