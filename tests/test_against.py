@@ -111,9 +111,23 @@ def test_max_episodes_gives_undecided(expert_run, tmp_path):
                               report=False, log=lines.append)
     assert result["sequential_verdict"]["verdict"] == "undecided"
     assert result["sequential_verdict"]["episodes"] == 5
+    assert not any("without a decision" in line for line in lines)  # --max-episodes stopped it
     assert lines[-1] == (f"so101-sim eval: note: the runs differ in CPU Some Other CPU vs "
                          f"{result['config']['cpu']}: actions then differ bitwise and some "
                          "seeds' outcomes may differ for that reason alone, not the policy's")
+
+
+def test_running_out_of_the_runs_seeds_says_how_to_go_on(tmp_path):
+    short = tmp_path / "short_ref"
+    evaluate("expert", episodes=4, n_envs=2, out_dir=short, videos=0, progress=False,
+             report=False, log=lambda _: None)
+    lines: list[str] = []
+    result = evaluate_against("expert", short, n_envs=2, out_dir=tmp_path / "again", videos=0,
+                              progress=False, report=False, log=lines.append)
+    assert result["sequential_verdict"]["verdict"] == "undecided"
+    assert (f"so101-sim eval: all 4 seeds of {short} ran without a decision; to go on, extend "
+            f"it: run its eval command again with --out {short} --resume --episodes 8 (the 4 "
+            "seeds already run are kept), then run this command again") in lines
 
 
 @pytest.mark.parametrize(("flags", "message"), [

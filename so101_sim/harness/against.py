@@ -18,7 +18,7 @@ from typing import Any
 from so101_sim.dataset import EVAL_SEED_START
 from so101_sim.harness.compare import RunSide, load_run, seed_ranges, seen_render_size, setup_note
 from so101_sim.harness.results import INFO
-from so101_sim.harness.sequential import SequentialPairedTest, Verdict
+from so101_sim.harness.sequential import UNDECIDED, SequentialPairedTest, Verdict
 from so101_sim.utils.versions import setup_differences
 
 
@@ -96,11 +96,24 @@ def evaluate_against(policy: Any, run: str | Path, *, margin: float = 0.0,
     result = evaluate(policy, task=task, episodes=len(stop.seeds),
                       seed_start=stop.seeds[0], stop=stop, log=log, **evaluate_kwargs)
     log(f"so101-sim eval: {stop.verdict().line()} against {run}")
+    if hint := more_seeds_hint(stop, run):
+        log(f"so101-sim eval: {hint}")
     if differences := setup_differences(reference.setup, result["config"]):
         log(f"so101-sim eval: {setup_note(differences)}")
     if note := render_note(reference, result["config"]):
         log(f"so101-sim eval: {note}")
     return result
+
+
+def more_seeds_hint(stop: AgainstRun, run: str | Path) -> str | None:
+    """How to go on when "undecided" came from running out of RUN's seeds (not from
+    --max-episodes): a true drop near the indifference edge can need more than 200."""
+    verdict, n = stop.verdict(), len(stop.reference.success)
+    if verdict.verdict != UNDECIDED or len(stop.seeds) < n or verdict.episodes < n:
+        return None
+    return (f"all {n} seeds of {run} ran without a decision; to go on, extend it: run its "
+            f"eval command again with --out {run} --resume --episodes {2 * n} (the {n} seeds "
+            "already run are kept), then run this command again")
 
 
 def render_note(reference: RunSide, config: dict[str, Any]) -> str | None:
