@@ -117,17 +117,31 @@ def test_max_episodes_gives_undecided(expert_run, tmp_path):
                          "seeds' outcomes may differ for that reason alone, not the policy's")
 
 
-def test_running_out_of_the_runs_seeds_says_how_to_go_on(tmp_path):
-    short = tmp_path / "short_ref"
+def test_running_out_of_the_runs_seeds_says_how_to_go_on(tmp_path, capsys):
+    """... and the commands it gives extend RUN and resume the --against run onto its new
+    seeds, the episodes already run kept."""
+    from so101_sim.cli import main
+
+    short, again = tmp_path / "short_ref", tmp_path / "again"
     evaluate("expert", episodes=4, n_envs=2, out_dir=short, videos=0, progress=False,
              report=False, log=lambda _: None)
-    lines: list[str] = []
-    result = evaluate_against("expert", short, n_envs=2, out_dir=tmp_path / "again", videos=0,
-                              progress=False, report=False, log=lines.append)
-    assert result["sequential_verdict"]["verdict"] == "undecided"
-    assert (f"so101-sim eval: all 4 seeds of {short} ran without a decision; to go on, extend "
+    argv = ["eval", "--policy", "expert", "--against", str(short), "--n-envs", "2",
+            "--videos", "0", "--out", str(again)]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert json.loads((again / "eval_info.json").read_text())["sequential_verdict"][
+        "verdict"] == "undecided"
+    hint = (f"so101-sim eval: all 4 seeds of {short} ran without a decision; to go on, extend "
             f"it: run its eval command again with --out {short} --resume --episodes 8 (the 4 "
-            "seeds already run are kept), then run this command again") in lines
+            f"seeds already run are kept), then so101-sim {' '.join(argv)} --resume (its 4 "
+            "episodes are kept too)")
+    assert hint in out.splitlines()
+    assert main(["eval", "--policy", "expert", "--out", str(short), "--resume", "--episodes",
+                 "8", "--n-envs", "2", "--videos", "0"]) == 0
+    capsys.readouterr()
+    assert main([*argv, "--resume"]) == 0
+    out = capsys.readouterr().out
+    assert "(4 done, 4 to run)" in out and "undecided after 8 paired episodes" in out
 
 
 @pytest.mark.parametrize(("flags", "message"), [

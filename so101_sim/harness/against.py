@@ -108,12 +108,16 @@ def evaluate_against(policy: Any, run: str | Path, *, margin: float = 0.0,
 def more_seeds_hint(stop: AgainstRun, run: str | Path) -> str | None:
     """How to go on when "undecided" came from running out of RUN's seeds (not from
     --max-episodes): a true drop near the indifference edge can need more than 200."""
+    from so101_sim.utils.disk import resume_command
+
     verdict, n = stop.verdict(), len(stop.reference.success)
     if verdict.verdict != UNDECIDED or len(stop.seeds) < n or verdict.episodes < n:
         return None
+    again = resume_command()  # an --against run resumes onto RUN's new seeds
+    then = f"then {again}" if again else "then this evaluation again with resume=True"
     return (f"all {n} seeds of {run} ran without a decision; to go on, extend it: run its "
             f"eval command again with --out {run} --resume --episodes {2 * n} (the {n} seeds "
-            "already run are kept), then run this command again")
+            f"already run are kept), {then} (its {n} episodes are kept too)")
 
 
 def render_note(reference: RunSide, config: dict[str, Any]) -> str | None:
