@@ -18,10 +18,9 @@ own RMS (seed 0). Steps, all with the harness defaults (render path, 8 envs), se
 5. with `--windows K`: K more windows of 200 seeds after the reference's (100200..,
    100400.., ...), each with its own reference run of CHECKPOINT and full run of the weakened
    one (kept in --out and reused) and one `--against` run of each policy: the median wall
-   over the windows is measured, not
-   inferred from one seed order, and the weakened checkpoint's drop is pooled over all seeds
-   (one window's 200 seeds put it within about +-6 points), with the test replayed on random
-   200-seed draws from the pooled pairs.
+   over the windows is measured, not inferred from one seed order, and the weakened
+   checkpoint's drop is pooled over all seeds (one window's 200 seeds put it within about +-6
+   points), with the test replayed on random 200-seed draws from the pooled pairs.
 """
 
 from __future__ import annotations
@@ -84,17 +83,22 @@ def outcomes(run_dir: Path) -> dict[int, bool]:
     return dict(load_run(run_dir).success)
 
 
+def paired(ref: dict[int, bool], new: dict[int, bool]) -> tuple[np.ndarray, np.ndarray]:
+    """Both runs' outcomes (0/1) on the seeds they share, in seed order."""
+    seeds = sorted(set(ref) & set(new))
+    return (np.array([ref[s] for s in seeds], dtype=np.int64),
+            np.array([new[s] for s in seeds], dtype=np.int64))
+
+
 def replay_orders(ref: dict[int, bool], new: dict[int, bool], orders: int,
                   margin: float, alpha: float) -> tuple[np.ndarray, np.ndarray]:
     """Verdicts and episodes used by the sequential test on random orders of the measured
     pairs (the same permutation applied to both runs, so the pairs stay pairs)."""
     from so101_sim.harness.sequential import batch_verdicts
 
-    seeds = sorted(set(ref) & set(new))
-    a = np.array([ref[s] for s in seeds], dtype=np.int64)
-    b = np.array([new[s] for s in seeds], dtype=np.int64)
+    a, b = paired(ref, new)
     rng = np.random.default_rng(0)
-    perms = np.stack([rng.permutation(len(seeds)) for _ in range(orders)])
+    perms = np.stack([rng.permutation(len(a)) for _ in range(orders)])
     return batch_verdicts(a[perms], b[perms], margin=margin, alpha=alpha)
 
 
@@ -163,15 +167,13 @@ def pooled_draws(ref: dict[int, bool], new: dict[int, bool], n: int, draws: int 
     `n` seeds does on average, without one window's luck."""
     from so101_sim.harness.sequential import batch_verdicts
 
-    seeds = sorted(set(ref) & set(new))
-    a = np.array([ref[s] for s in seeds], dtype=np.int64)
-    b = np.array([new[s] for s in seeds], dtype=np.int64)
+    a, b = paired(ref, new)
     rng = np.random.default_rng(0)
-    picks = np.stack([rng.choice(len(seeds), n, replace=False) for _ in range(draws)])
+    picks = np.stack([rng.choice(len(a), n, replace=False) for _ in range(draws)])
     verdicts, used = batch_verdicts(a[picks], b[picks], margin=0.0, alpha=0.05)
     counts = {v: int((verdicts == v).sum()) for v in sorted(set(verdicts.tolist()))}
     p25, p50, p75 = (int(np.percentile(used, q)) for q in (25, 50, 75))
-    return (f"{draws} random {n}-seed draws from the {len(seeds)} pooled pairs, weakened: "
+    return (f"{draws} random {n}-seed draws from the {len(a)} pooled pairs, weakened: "
             f"verdicts {counts}; episodes used median {p50} (p25 {p25}, p75 {p75})")
 
 
@@ -204,14 +206,12 @@ def other_windows(work: Path, ckpt: Path, weak: Path, windows: int, n: int,
             verdicts[name].append(v["verdict"])
             cells.append(f"{name} {v['verdict']} after {v['episodes']} in {wall:.1f} s")
         print(f"5. seeds {start}..{int(start) + n - 1}: " + "; ".join(cells))
-    seeds = sorted(set(ref_all) & set(weak_all))
-    a = [ref_all[s] for s in seeds]
-    b = [weak_all[s] for s in seeds]
-    both = sum(x and y for x, y in zip(a, b, strict=True))
-    only_a, only_b = sum(a) - both, sum(b) - both
-    lo, hi = paired_difference_interval(both, only_a, only_b, len(seeds) - both - only_a - only_b)
-    print(f"5. pooled over {len(seeds)} seeds: reference {sum(a)}, weakened {sum(b)}: "
-          f"{100 * (sum(a) - sum(b)) / len(seeds):+.1f} points ({100 * lo:+.1f} to "
+    a, b = paired(ref_all, weak_all)
+    both = int((a & b).sum())
+    only_a, only_b = int(a.sum()) - both, int(b.sum()) - both
+    lo, hi = paired_difference_interval(both, only_a, only_b, len(a) - both - only_a - only_b)
+    print(f"5. pooled over {len(a)} seeds: reference {a.sum()}, weakened {b.sum()}: "
+          f"{100 * (a.sum() - b.sum()) / len(a):+.1f} points ({100 * lo:+.1f} to "
           f"{100 * hi:+.1f}), McNemar p = {mcnemar_p_value(only_a, only_b):.2g}")
     print("5. " + pooled_draws(ref_all, weak_all, n))
     for name in walls:

@@ -16,6 +16,7 @@ from typing import Any
 
 from so101_sim.dataset.schema import EVAL_SEED_START
 from so101_sim.tasks import available_tasks, load_task
+from so101_sim.train.presets import config_class
 from so101_sim.train.widen import widen_conditioning, widen_keypoints
 from so101_sim.utils.paths import hub_id_hint, policy_dir
 from so101_sim.utils.text import counted
@@ -91,8 +92,6 @@ def _files_hint(path: Path) -> str:
 
 def load_config(path: Path) -> Any:
     import draccus
-    import lerobot.policies  # noqa: F401  (registers the policy config types)
-    from lerobot.configs.policies import PreTrainedConfig
 
     try:
         raw = json.loads((path / "config.json").read_text())
@@ -105,9 +104,9 @@ def load_config(path: Path) -> Any:
     # same fields builds the same config (same errors too) and leaves nothing behind.
     fields = {key: value for key, value in raw.items() if key != "type"}
     try:
-        config_cls = PreTrainedConfig.get_choice_class(policy_type)
+        cls = config_class(policy_type)
         with draccus.config_type("json"):
-            return draccus.decode(config_cls, fields)
+            return draccus.decode(cls, fields)
     except Exception as exc:
         raise ValueError(f"{path / 'config.json'} (policy type {policy_type!r}) could not be "
                          f"parsed by lerobot: {exc}") from exc
