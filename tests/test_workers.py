@@ -9,9 +9,11 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
+import so101_sim
 from so101_sim.workers import check_backend, start_pool
 
 
@@ -168,11 +170,62 @@ def test_the_fork_server_leaves_without_holding_the_commands_output(tmp_path) ->
     preloads made are frozen for its workers."""
     (tmp_path / "slow_exit.py").write_text(SLOW_EXIT)
     (tmp_path / "server_probe.py").write_text(SERVER_PROBE)
-    # cwd: the server's sys.path starts with it (Python 3.12's fork server ignores the
-    # driver's sys.path when it imports its preloads)
+    # the server finds both on the driver's sys.path (the cwd is elsewhere)
     out = subprocess.run([sys.executable, "-c", DRIVER, str(tmp_path)], capture_output=True,
-                         text=True, timeout=45, cwd=tmp_path)  # closed long before the sleep
+                         text=True, timeout=45, cwd=tmp_path.parent)  # closed long before the sleep
     assert out.returncode == 0, out.stderr[-3000:]
     probe = json.loads(out.stdout.strip().splitlines()[-1])
     assert probe["server_init"] is True and probe["slow_exit"] is True  # both preloaded
     assert probe["frozen"] > 1000  # the preloads' objects (so101_sim, numpy, ...) are frozen
+
+
+PATH_PROBE = """
+import os, sys
+
+class PathProbe:
+    def probe(self):
+        return {"so101_sim": os.path.dirname(sys.modules["so101_sim"].__file__),
+                "stray": "stray_module" in sys.modules}
+
+class PathProbeFactory:
+    def __call__(self):
+        return PathProbe()
+"""
+
+PATH_DRIVER = """
+import json, os, sys
+sys.path.insert(0, os.environ["PROBE_DIR"])  # a path the driver adds at run time
+import so101_sim
+from so101_sim.workers import start_pool
+from path_probe import PathProbeFactory
+
+if __name__ == "__main__":
+    with start_pool(PathProbeFactory(), 1, name="test-path", preload=("stray_module",)) as pool:
+        pool.submit(0, "probe")
+        (reply,) = pool.collect()
+    here = {"so101_sim": os.path.dirname(so101_sim.__file__),
+            "stray": "stray_module" in sys.modules}
+    print(json.dumps({"worker": reply.value, "driver": here}), flush=True)
+"""
+
+
+def test_workers_import_what_the_driver_imports_not_the_current_directory(tmp_path) -> None:
+    """A command run from inside another checkout (its own so101_sim/ in the cwd): Python
+    3.12's fork server put the cwd first on its sys.path, so its preloads came from there and
+    the workers mixed that checkout's modules with the driver's (here: they could not start).
+    The server imports from the driver's sys.path: the cwd's modules are not found, and a path
+    the driver added at run time is."""
+    probe_dir, cwd = tmp_path / "probe", tmp_path / "checkout"
+    (cwd / "so101_sim").mkdir(parents=True)
+    (cwd / "so101_sim" / "__init__.py").write_text("")  # another version, say
+    (cwd / "stray_module.py").write_text("")
+    probe_dir.mkdir()
+    (probe_dir / "path_probe.py").write_text(PATH_PROBE)
+    (probe_dir / "driver.py").write_text(PATH_DRIVER)  # a script: its dir, not the cwd, leads
+    out = subprocess.run([sys.executable, str(probe_dir / "driver.py")], capture_output=True,
+                         text=True, timeout=120, cwd=cwd,
+                         env={**os.environ, "PROBE_DIR": str(probe_dir)})
+    assert out.returncode == 0, out.stderr[-3000:]
+    seen = json.loads(out.stdout.strip().splitlines()[-1])
+    assert seen["driver"] == {"so101_sim": str(Path(so101_sim.__file__).parent), "stray": False}
+    assert seen["worker"] == seen["driver"]  # the same so101_sim, no stray module

@@ -13,12 +13,14 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing as mp
+import os
 import signal
 import socket
+import sys
 import time
 import traceback
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from multiprocessing.connection import Connection, wait
 from typing import Any
 
@@ -60,6 +62,38 @@ def _serve(conn: Connection, factory: Callable[[], Any]) -> None:
                 close()
 
 
+def ensure_fork_server() -> None:
+    """Start this process's fork server if it is not running, importing with this process's
+    ``sys.path``.
+
+    Python 3.12 runs the server as ``python -c`` and drops the ``sys.path`` it is handed, so
+    the server and every worker forked from it would import with the current directory first:
+    run from another checkout, the workers would run that checkout's so101_sim (or a stray
+    ``mujoco.py``) beside this process's own, silently. The server starts with
+    PYTHONSAFEPATH (no current directory) and this process's ``sys.path`` as PYTHONPATH.
+    """
+    from multiprocessing import forkserver
+
+    paths = os.pathsep.join(os.path.abspath(p or os.curdir) for p in sys.path)  # "" = cwd
+    with _environ(PYTHONSAFEPATH="1", PYTHONPATH=paths):
+        forkserver.ensure_running()
+
+
+@contextlib.contextmanager
+def _environ(**values: str) -> Iterator[None]:
+    """`values` in os.environ while the block runs (a child started then inherits them)."""
+    saved = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
 def start_fork_server(preload: tuple[str, ...]) -> None:
     """Start this process's fork server now, importing `preload`, without waiting for it.
 
@@ -68,10 +102,8 @@ def start_fork_server(preload: tuple[str, ...]) -> None:
     pool's preload is not imported by the server (its workers import what they lack), and
     workers inherit the environment as it is now.
     """
-    from multiprocessing import forkserver
-
     mp.get_context("forkserver").set_forkserver_preload(server_preload(preload))
-    forkserver.ensure_running()
+    ensure_fork_server()
 
 
 class LocalPool(WorkerPool):
@@ -108,6 +140,7 @@ class LocalPool(WorkerPool):
         return self._procs[i].pid if self._procs[i] is not None else None
 
     def _spawn(self, i: int) -> None:
+        ensure_fork_server()  # the first worker starts it (or a new one, had it died)
         parent, child = self._ctx.Pipe()
         proc = self._ctx.Process(target=_worker_main, args=(child, self.factory),
                                  name=f"{self.name}-{i}", daemon=True)
