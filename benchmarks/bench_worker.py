@@ -24,7 +24,9 @@ import sys
 
 #: (label, render size, mesh width (None: the render's own), resize to, filmed)
 ROWS = [
-    ("default: 240x320, recorded 640 px meshes, resized to 60x80", (240, 320), 640, (60, 80),
+    ("default: 180x240, recorded 640 px meshes, resized to 60x80", (180, 240), 640, (60, 80),
+     False),
+    ("240x320, 640 px meshes (the default before 2026-12-05)", (240, 320), 640, (60, 80),
      False),
     ("--faithful: 480x640, 640 px meshes, resized to 60x80", (480, 640), 640, (60, 80), False),
     ("direct: 60x80 (`--image-size 60x80`), 80 px meshes", (60, 80), None, None, False),

@@ -139,13 +139,13 @@ def test_padded_rows_do_not_depend_on_batch_mates(tiny_ckpt):
 
 
 # ------------------------------------------------------------------------ outputs and resume
-REDUCED = ("reduced: rendered at 240x320 (mesh detail of the recorded 640 px width), "
-           "resize_frames to 60x80; vs the faithful 480x640: mean |diff| 0.26, p99 5, max 32 "
+REDUCED = ("reduced: rendered at 180x240 (mesh detail of the recorded 640 px width), "
+           "resize_frames to 60x80; vs the faithful 480x640: mean |diff| 0.40, p99 8, max 32 "
            "grey levels over 8 frames")  # what the default path says of the shipped policy
 
 
 def test_a_pipe_in_a_value_stays_inside_its_table_cell(tmp_path):
-    """The images line of the default path, "mean |diff| 0.26", split report.md's table row."""
+    """The images line of the default path, "mean |diff| 0.40", split report.md's table row."""
     import re
 
     from so101_sim.harness.report import write_report
@@ -163,7 +163,7 @@ def test_a_pipe_in_a_value_stays_inside_its_table_cell(tmp_path):
     assert len(table) > 8
     for row in table:  # "| key | value |": 2 cells, whatever the value holds
         assert len(re.split(r"(?<!\\)\|", row)) == 4, row
-    assert "| images | reduced: rendered at 240x320" in md and "mean \\|diff\\| 0.26" in md
+    assert "| images | reduced: rendered at 180x240" in md and "mean \\|diff\\| 0.40" in md
     assert "| env workers | local backend, 1 worker on 1 node |" in md  # not "1 workers"
 
 

@@ -144,6 +144,6 @@ def test_the_self_check_started_early_gives_the_answer_of_one_run_here():
     here, early = _run(EARLY, ckpt, "here"), _run(EARLY, ckpt, "early")
     assert early["warmed"] and early["started"] and early["other_task"]
     assert early["faithful_only"] is False and early["broken"] is None
-    assert here["size"] == early["size"] == [240, 320]
+    assert here["size"] == early["size"] == [180, 240]
     assert early["label"] == here["label"] and early["check"] == here["check"]
     assert early["pending"] == 1 and here["pending"] == 0  # lift's was never asked for

@@ -281,7 +281,8 @@ def build_parsers() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argumen
     ev.add_argument("--image-size", type=parse_image_size, default=None,
                     help="render size HEIGHTxWIDTH (default: the smallest size whose frames, "
                          "resized like training, match the faithful ones within a tolerance "
-                         "checked at start; the policy's input size renders directly)")
+                         "checked at start; the policy's input size renders directly, any "
+                         "other size keeps the training data's mesh detail)")
     ev.add_argument("--faithful", action="store_true",
                     help="render at the training data's size (so101_sim_train.json) and resize "
                          "like training did: exactly what the policy was trained on, slower")

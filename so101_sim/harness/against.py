@@ -123,7 +123,8 @@ def more_seeds_hint(stop: AgainstRun, run: str | Path) -> str | None:
 def render_note(reference: RunSide, config: dict[str, Any]) -> str | None:
     """One line when this run's policy saw frames rendered at another size than RUN's: a
     closed-loop policy parts on small frame differences on some seeds (the shipped one on
-    17-18 of 200 between 240x320 and 480x640), which the test would put on the policy."""
+    17 of 200 between 240x320 and 480x640, 18 between 180x240 and 480x640), which the test
+    would put on the policy."""
     ours, theirs = seen_render_size(config), reference.render_size
     if ours is None or theirs is None or ours == theirs:
         return None
