@@ -241,16 +241,27 @@ def test_outputs_videos_report_and_resume(tmp_path, capsys):
 def test_the_resume_command_of_a_run_without_out_names_its_folder(tmp_path, capsys,
                                                                   monkeypatch):
     """Without --out a run gets a new timestamped folder; the command that continues it (the
-    disk-full hint, the Ctrl-C line) carries --out with that folder, and it resumes there."""
+    disk-full hint, the Ctrl-C line) carries --out with that folder, and it resumes there.
+    That command lasts as long as main(): afterwards the Python API's hints are its own."""
     import shlex
 
-    from so101_sim.utils.disk import resume_command
+    import so101_sim.harness.runner as runner
+    from so101_sim.utils.disk import DiskFullError, note_default_out, resume_command
 
+    seen = []
+
+    def noting(folder):  # the command as it stands while the run writes `folder`
+        note_default_out(folder)
+        seen.append(resume_command())
+
+    monkeypatch.setattr(runner, "note_default_out", noting)
     monkeypatch.chdir(tmp_path)
     assert main(["eval", "--policy", "expert", "--episodes", "1", "--n-envs", "1",
                  "--videos", "0", "--image-size", "48x64"]) == 0
     (folder,) = (tmp_path / "outputs" / "eval").iterdir()
-    argv = shlex.split(resume_command())
+    assert resume_command() is None
+    assert "run the same command with --resume" in str(DiskFullError("episodes", folder))
+    argv = shlex.split(seen[0])
     assert argv[-3:] == ["--out", str(folder.relative_to(tmp_path)), "--resume"]
     capsys.readouterr()
     assert main([*argv[1:-3], "--episodes", "2", *argv[-3:]]) == 0

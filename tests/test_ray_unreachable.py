@@ -69,6 +69,24 @@ def test_nothing_listening_is_one_line_and_no_folder(tmp_path: Path, command: st
     assert not out.exists()
 
 
+def test_the_connect_timeout_lasts_as_long_as_the_command(tmp_path: Path,
+                                                          monkeypatch) -> None:
+    """main() called from Python sets --ray-connect-timeout for its own command only: a later
+    API call in the same process waits the default (or what the caller had set) again."""
+    from so101_sim.cli import main
+    from so101_sim.workers.ray_connect import CONNECT_TIMEOUT_ENV, connect_timeout
+
+    port = _closed_port()
+    argv = [*EVAL, "--out", str(tmp_path / "out"), "--backend", "ray", "--ray-address",
+            f"127.0.0.1:{port}", "--ray-connect-timeout", "1"]
+    monkeypatch.delenv(CONNECT_TIMEOUT_ENV, raising=False)
+    assert main(argv) == 2
+    assert CONNECT_TIMEOUT_ENV not in os.environ and connect_timeout() == 30.0
+    monkeypatch.setenv(CONNECT_TIMEOUT_ENV, "7")
+    assert main(argv) == 2
+    assert os.environ[CONNECT_TIMEOUT_ENV] == "7"
+
+
 def test_a_port_that_never_answers_is_bounded(tmp_path: Path, silent_port: int) -> None:
     out = tmp_path / "out"
     t0 = time.monotonic()

@@ -18,14 +18,18 @@ def main(argv: list[str] | None = None) -> int:
     if argv is None:  # the process is this command (the entry point), not a caller's call
         own_process()
     args = parse_command_line(argv)
+    if getattr(args, "ray_connect_timeout", None) is not None and args.ray_address is None:
+        print(f"so101-sim {args.command}: error: --ray-connect-timeout "
+              f"{args.ray_connect_timeout:g} only applies with --ray-address (the seconds "
+              "to wait for that cluster); add --backend ray --ray-address ADDR, or drop "
+              "--ray-connect-timeout", file=sys.stderr)
+        return 2
+    # What this command sets for the code it runs lasts as long as the command: a caller
+    # that goes on in the same process (main() from Python, then the API) gets neither this
+    # command line in its disk-full hints nor its Ray connect timeout.
+    timeout_before = os.environ.get(CONNECT_TIMEOUT_ENV)
     set_command(["so101-sim", *(sys.argv[1:] if argv is None else argv)])  # disk-full hint
     if getattr(args, "ray_connect_timeout", None) is not None:  # read by workers.ray_connect
-        if args.ray_address is None:  # without an address no cluster is waited for
-            print(f"so101-sim {args.command}: error: --ray-connect-timeout "
-                  f"{args.ray_connect_timeout:g} only applies with --ray-address (the seconds "
-                  "to wait for that cluster); add --backend ray --ray-address ADDR, or drop "
-                  "--ray-connect-timeout", file=sys.stderr)
-            return 2
         os.environ[CONNECT_TIMEOUT_ENV] = str(args.ray_connect_timeout)
     try:
         with signal_exit_code():  # SIGTERM exits 15 wherever in Ray it lands
@@ -49,6 +53,11 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     finally:
+        set_command(None)
+        if timeout_before is None:
+            os.environ.pop(CONNECT_TIMEOUT_ENV, None)
+        else:
+            os.environ[CONNECT_TIMEOUT_ENV] = timeout_before
         freeze_for_exit()  # the interpreter's teardown then skips torch's objects
 
 

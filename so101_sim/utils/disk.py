@@ -18,11 +18,11 @@ _FULL_TEXT = ("No space left on device", "Disk quota exceeded")
 _command: list[str] | None = None
 
 
-def set_command(argv: list[str]) -> None:
-    """Remember the command line of this process (the CLI calls it), so a disk-full message
-    can print the exact command that continues the run."""
+def set_command(argv: list[str] | None) -> None:
+    """Remember the command line being run (the CLI calls it, and clears it with None when the
+    command returns), so a disk-full message can print the exact command that continues it."""
     global _command
-    _command = list(argv)
+    _command = None if argv is None else list(argv)
 
 
 def is_disk_full(exc: BaseException | None) -> bool:
