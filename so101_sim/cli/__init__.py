@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import os
 import sys
 
 from so101_sim.cli.arg_types import parse_camera_map_arg, parse_image_size
 from so101_sim.cli.parser import build_parser, parse_command_line
 from so101_sim.utils.collector import freeze_for_exit, own_process
 from so101_sim.utils.disk import again_hint, free_space, is_disk_full, set_command
+from so101_sim.utils.environ import environ_set
 from so101_sim.workers.ray_connect import CONNECT_TIMEOUT_ENV, signal_exit_code
 
 __all__ = ["build_parser", "main", "parse_camera_map_arg", "parse_image_size"]
@@ -18,21 +18,21 @@ def main(argv: list[str] | None = None) -> int:
     if argv is None:  # the process is this command (the entry point), not a caller's call
         own_process()
     args = parse_command_line(argv)
-    if getattr(args, "ray_connect_timeout", None) is not None and args.ray_address is None:
+    timeout = getattr(args, "ray_connect_timeout", None)  # read by workers.ray_connect
+    if timeout is not None and args.ray_address is None:
         print(f"so101-sim {args.command}: error: --ray-connect-timeout "
-              f"{args.ray_connect_timeout:g} only applies with --ray-address (the seconds "
+              f"{timeout:g} only applies with --ray-address (the seconds "
               "to wait for that cluster); add --backend ray --ray-address ADDR, or drop "
               "--ray-connect-timeout", file=sys.stderr)
         return 2
     # What this command sets for the code it runs lasts as long as the command: a caller
     # that goes on in the same process (main() from Python, then the API) gets neither this
     # command line in its disk-full hints nor its Ray connect timeout.
-    timeout_before = os.environ.get(CONNECT_TIMEOUT_ENV)
+    scoped = {} if timeout is None else {CONNECT_TIMEOUT_ENV: str(timeout)}
     set_command(["so101-sim", *(sys.argv[1:] if argv is None else argv)])  # disk-full hint
-    if getattr(args, "ray_connect_timeout", None) is not None:  # read by workers.ray_connect
-        os.environ[CONNECT_TIMEOUT_ENV] = str(args.ray_connect_timeout)
     try:
-        with signal_exit_code():  # SIGTERM exits 15 wherever in Ray it lands
+        # SIGTERM exits 15 wherever in Ray it lands
+        with environ_set(scoped), signal_exit_code():
             return args.func(args)
     except KeyboardInterrupt:  # Ctrl-C while a command starts (imports, loading): one line
         print(f"so101-sim {args.command}: interrupted", file=sys.stderr)
@@ -54,10 +54,6 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     finally:
         set_command(None)
-        if timeout_before is None:
-            os.environ.pop(CONNECT_TIMEOUT_ENV, None)
-        else:
-            os.environ[CONNECT_TIMEOUT_ENV] = timeout_before
         freeze_for_exit()  # the interpreter's teardown then skips torch's objects
 
 

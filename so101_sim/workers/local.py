@@ -20,10 +20,11 @@ import sys
 import time
 import traceback
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from multiprocessing.connection import Connection, wait
 from typing import Any
 
+from so101_sim.utils.environ import environ_set
 from so101_sim.workers.base import PoolInfo, Reply, WorkerPool
 
 #: Imported by the fork server after every pool's preloads, never here (workers.server_init).
@@ -75,23 +76,8 @@ def ensure_fork_server() -> None:
     from multiprocessing import forkserver
 
     paths = os.pathsep.join(os.path.abspath(p or os.curdir) for p in sys.path)  # "" = cwd
-    with _environ(PYTHONSAFEPATH="1", PYTHONPATH=paths):
+    with environ_set({"PYTHONSAFEPATH": "1", "PYTHONPATH": paths}):
         forkserver.ensure_running()
-
-
-@contextlib.contextmanager
-def _environ(**values: str) -> Iterator[None]:
-    """`values` in os.environ while the block runs (a child started then inherits them)."""
-    saved = {k: os.environ.get(k) for k in values}
-    os.environ.update(values)
-    try:
-        yield
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 def start_fork_server(preload: tuple[str, ...]) -> None:
