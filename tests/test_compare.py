@@ -244,6 +244,16 @@ def test_comparing_a_folder_with_itself_warns(tmp_path, capsys):
     compare_runs(a, b, log=lambda line: pytest.fail(f"warned about two folders: {line}"))
 
 
+def test_a_missing_folder_compared_with_itself_gets_its_error_alone(tmp_path, capsys):
+    missing = tmp_path / "not_run_yet"
+    assert main(["compare", str(missing), str(missing)]) == 2
+    out, err = capsys.readouterr()
+    assert "warning" not in out + err
+    assert err.strip().splitlines() == [
+        f"so101-sim compare: error: {missing} does not exist: expected the --out folder of a "
+        "finished `so101-sim eval`"]
+
+
 def test_runs_on_other_software_or_cpu_are_compared_with_a_note(tmp_path, capsys):
     """Actions differ bitwise across torch releases and CPU instruction sets, so a paired
     comparison across them says so (files from before this was recorded: no note)."""

@@ -197,13 +197,19 @@ def _extend_hint(a: RunSide, b: RunSide) -> str:
 def compare_runs(run_a: str | Path, run_b: str | Path,
                  log: Callable[[str], None] = print) -> dict[str, Any]:
     """The paired comparison of two eval folders as a JSON-able dict (see module docstring).
-    Comparing a folder with itself is allowed (a smoke test) but said, in one line."""
-    if Path(run_a).resolve() == Path(run_b).resolve():
-        log(f"so101-sim compare: warning: A and B are the same folder ({run_a}); every seed "
-            "agrees with itself, so this says nothing about the policy: pass two eval folders")
+    Comparing a folder with itself is allowed (a smoke test) but said, in one line, once the
+    folder has been read: a missing or damaged one gets its error alone."""
     a, b = load_run(run_a), load_run(run_b)
+    if Path(run_a).resolve() == Path(run_b).resolve():
+        log(same_folder_warning(run_a))
     check_comparable(a, b)
     return paired_result(a, b)
+
+
+def same_folder_warning(folder: str | Path) -> str:
+    """The one line said when A and B are the same folder."""
+    return (f"so101-sim compare: warning: A and B are the same folder ({folder}); every seed "
+            "agrees with itself, so this says nothing about the policy: pass two eval folders")
 
 
 def paired_result(a: RunSide, b: RunSide) -> dict[str, Any]:

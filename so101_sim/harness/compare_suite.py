@@ -18,6 +18,7 @@ from so101_sim.harness.compare import (
     MARKDOWN_NAME,
     compare_runs,
     load_run,
+    same_folder_warning,
     suite_tasks,
     verdict,
     write_comparison,
@@ -50,8 +51,7 @@ def compare_suites(run_a: str | Path, run_b: str | Path,
             f"in A: {', '.join(only_a) or 'none'}, only in B: {', '.join(only_b) or 'none'}")
     same = a.resolve() == b.resolve()
     if same:
-        log(f"so101-sim compare: warning: A and B are the same folder ({a}); every seed agrees "
-            "with itself, so this says nothing about the policy: pass two eval folders")
+        log(same_folder_warning(a))
     per_task = {t: compare_runs(a / t, b / t, log=(lambda _: None) if same else log)
                 for t in shared}
     counts = {k: sum(r["paired"][k] for r in per_task.values()) for k in COUNTS}
