@@ -80,6 +80,35 @@ def test_a_broken_policy_is_declared_worse_early(expert_run, tmp_path):
         AgainstRun(gapped)
 
 
+def test_a_resumed_run_that_its_episodes_decide_runs_no_more(expert_run, tmp_path):
+    out = tmp_path / "broken"
+    first = evaluate_against(_stand_still(), expert_run, n_envs=2, out_dir=out, videos=0,
+                             progress=False, report=False, log=lambda _: None)
+    again = evaluate_against(_stand_still(), expert_run, n_envs=2, out_dir=out, videos=0,
+                             progress=False, report=False, resume=True, log=lambda _: None)
+    assert again["sequential_verdict"]["verdict"] == "worse"
+    assert again["sequential_verdict"]["episodes"] == first["sequential_verdict"]["episodes"]
+    assert again["aggregated"]["n_episodes"] == first["aggregated"]["n_episodes"]
+
+
+def test_out_that_is_the_against_run_itself_is_refused(expert_run, tmp_path, capsys):
+    from so101_sim.cli import main
+
+    ref = tmp_path / "ref"
+    shutil.copytree(expert_run, ref)
+    before = {p.name: p.read_bytes() for p in ref.iterdir() if p.is_file()}
+    for resume in ([], ["--resume"]):
+        assert main(["eval", "--policy", "expert", "--against", str(ref), "--out",
+                     str(ref / "."), *resume]) == 2
+        assert capsys.readouterr().err.strip().splitlines() == [
+            f"so101-sim eval: error: --out {ref / '.'} is the --against run itself: its "
+            "episodes and verdict would be written into the reference they are tested "
+            "against; choose another --out (or leave it out)"]
+    with pytest.raises(ValueError, match="is the --against run itself"):
+        evaluate_against(_stand_still(), ref, out_dir=ref, log=lambda _: None)
+    assert {p.name: p.read_bytes() for p in ref.iterdir() if p.is_file()} == before
+
+
 def test_the_expert_against_itself_is_not_worse(expert_run, tmp_path, capsys):
     from so101_sim.cli import main
 

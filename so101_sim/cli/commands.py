@@ -138,9 +138,10 @@ def resolve_eval_flags(args: argparse.Namespace) -> None:
             if getattr(args, key) is None:
                 setattr(args, key, value)
     else:
-        from so101_sim.harness.against import reference_task
+        from so101_sim.harness.against import check_out, reference_task
         from so101_sim.harness.compare import load_run
 
+        check_out(args.against, args.out)
         reference = load_run(args.against)
         for key in ("episodes", "seed_start"):
             if getattr(args, key) is not None:

@@ -77,6 +77,15 @@ def reference_task(reference: RunSide, task: str | Path | None) -> str | Path:
     return task
 
 
+def check_out(run: str | Path, out: str | Path | None) -> None:
+    """Refuse ``--out RUN``: the run would add its episodes to the reference it is tested
+    against and write its verdict over RUN's eval_info.json."""
+    if out is not None and Path(out).resolve() == Path(run).resolve():
+        raise ValueError(f"--out {out} is the --against run itself: its episodes and verdict "
+                         "would be written into the reference they are tested against; "
+                         "choose another --out (or leave it out)")
+
+
 def evaluate_against(policy: Any, run: str | Path, *, margin: float = 0.0,
                      indifference: float = 0.10, alpha: float = 0.05,
                      max_episodes: int | None = None, task: Any = None,
@@ -86,6 +95,7 @@ def evaluate_against(policy: Any, run: str | Path, *, margin: float = 0.0,
     test decides; returns the eval_info dict with ``sequential_verdict``."""
     from so101_sim.harness.runner import evaluate
 
+    check_out(run, evaluate_kwargs.get("out_dir"))
     reference = load_run(run)
     task = reference_task(reference, task)
     stop = AgainstRun(reference, margin, indifference, alpha, max_episodes)

@@ -92,7 +92,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
     None: ``devices.eval_policy_threads()``, half the cores (one on 2 cores).
     `faithful`: render at the training data's size (else the smallest size that passes the
     self-check in ``harness.frames``). `stop`: an object with ``update(done) -> bool``,
-    asked after every finished episode, and ``to_info()`` (``harness.against``).
+    asked first (resumed episodes) and after each new one, and ``to_info()`` (harness.against).
     """
     spec = load_task(task)  # parsed once here; the spec travels to the workers
     if not isinstance(policy, EvalPolicy):
@@ -156,6 +156,8 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
     if sink is not None:
         done = _open_rollouts(sink, resume, done, save_rollouts, log)
     todo = deque(s for s in range(seed_start, seed_start + episodes) if s not in done)
+    if stop is not None and stop.update(done):  # a resumed --against run's seeds may decide
+        todo.clear()
     log(f"so101-sim eval: {info.name} on {spec.name}, "
         f"{seed_span(seed_start, seed_start + episodes - 1)} ({len(done)} done, {len(todo)} to "
         f"run), {counted(min(n_envs, max(1, len(todo))), 'env')}; images: {rendering.label}")
