@@ -147,3 +147,42 @@ def test_the_self_check_started_early_gives_the_answer_of_one_run_here():
     assert here["size"] == early["size"] == [180, 240]
     assert early["label"] == here["label"] and early["check"] == here["check"]
     assert early["pending"] == 1 and here["pending"] == 0  # lift's was never asked for
+
+
+AGAINST = textwrap.dedent("""
+    import json, sys
+    from pathlib import Path
+    import so101_sim.harness.frames as frames
+    from so101_sim.cli import main
+
+    ckpt, ref, out = sys.argv[1:4]
+    def refuse(*args):
+        raise AssertionError("the early answer should have been used")
+    frames._self_check = refuse  # this process only: the fork server imports its own copy
+    rc = main(["eval", "--policy", ckpt, "--against", ref, "--max-episodes", "1",
+               "--n-envs", "1", "--videos", "0", "--out", out])
+    info = json.loads((Path(out) / "eval_info.json").read_text())
+    print(json.dumps({"rc": rc, "check": info["config"].get("image_check"),
+                      "images": info["config"]["images"],
+                      "episodes": info["sequential_verdict"]["episodes"]}))
+""")
+
+
+def test_an_against_run_uses_the_self_check_started_early(tmp_path):
+    """`eval --against RUN` takes its task from RUN before the policy loads, so its render
+    self-check starts early too, as a plain eval's does."""
+    from so101_sim.tasks import load_task
+
+    ckpt = Path(__file__).resolve().parents[1] / "policy" / "pick_place_diffusion"
+    ref = tmp_path / "ref"
+    ref.mkdir()
+    info = {"per_episode": [{"seed": s, "success": True, "actions_sha": None}
+                            for s in (100_000, 100_001)],
+            "config": {"policy": "ref", "policy_fingerprint": "ref", "task": "pick_place",
+                       "task_sha256": load_task("pick_place").sha256(),
+                       "images": "reduced: rendered at 180x240"}}
+    (ref / "eval_info.json").write_text(json.dumps(info))
+    out = _run(AGAINST, str(ckpt), str(ref), str(tmp_path / "out"))
+    assert out["rc"] == 0 and out["episodes"] == 1
+    # the self-check's numbers came from the early process (here it would have raised)
+    assert out["check"] is not None and out["images"].startswith("reduced: rendered at")

@@ -188,7 +188,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
             # policy load here, and the render self-check runs there once it has.
             if (warm_eval_workers(videos=args.videos > 0,
                                   rollouts=args.save_rollouts is not None)
-                    and not (suite or args.against or args.faithful or args.image_size)):
+                    and not (suite or args.faithful or args.image_size)):
                 start_self_check(checkpoint, args.task, args.camera_map)
         with startup_objects():  # torch's and the checkpoint's objects live to the end
             if args.device != "cpu" and args.policy != "expert" and ":" not in args.policy:
