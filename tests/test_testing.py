@@ -87,21 +87,35 @@ def test_curtailed_verdict_is_the_full_tests_verdict_whatever_the_rest_give():
         check_success_rate(5, 20, 0.7, ran=12)
 
 
+class _HoldStill:
+    def reset(self, seed):
+        pass
+
+    def select_action(self, obs):
+        return np.asarray(obs["agent_pos"], dtype=np.float32)
+
+
+def _hold_still() -> StepPolicy:
+    return StepPolicy(_HoldStill, PolicyInfo(name="hold-still", fingerprint="hold-still"))
+
+
 def test_assert_success_rate_fails_a_policy_that_never_succeeds(tmp_path, capsys):
-    class HoldStill:
-        def reset(self, seed):
-            pass
-
-        def select_action(self, obs):
-            return np.asarray(obs["agent_pos"], dtype=np.float32)
-
-    policy = StepPolicy(HoldStill, PolicyInfo(name="hold-still", fingerprint="hold-still"))
+    policy = _hold_still()
     with pytest.raises(pytest.fail.Exception, match="success rate regression"):
         assert_success_rate(policy, baseline=0.9, episodes=4, n_envs=2,
                             task=str(short_task(tmp_path, max_steps=8)))
     # 0 of 3 already fails the 4-episode test (at most 1/4 vs 0.9), so the fourth never runs
     assert "success 0/3 = 0.0%" in (out := capsys.readouterr().out)
     assert "decided after 3 of 4 episodes" in out
+
+
+def test_a_baseline_no_outcome_can_fail_passes_after_one_episode(tmp_path):
+    """0 of 3 is not significantly below 1% at alpha 0.01, so the verdict is known before any
+    episode; the check still runs one, so that it reports on something measured."""
+    policy = _hold_still()
+    check = assert_success_rate(policy, baseline=0.01, episodes=3, n_envs=1,
+                                task=str(short_task(tmp_path, max_steps=8)))
+    assert check.passed and check.episodes_run == 1
 
 
 def test_expert_success_rate_regression():

@@ -156,7 +156,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
     if sink is not None:
         done = _open_rollouts(sink, resume, done, save_rollouts, log)
     todo = deque(s for s in range(seed_start, seed_start + episodes) if s not in done)
-    if stop is not None and stop.update(done):  # a resumed --against run's seeds may decide
+    if stop is not None and done and stop.update(done):  # a resumed run may be decided
         todo.clear()
     log(f"so101-sim eval: {info.name} on {spec.name}, "
         f"{seed_span(seed_start, seed_start + episodes - 1)} ({len(done)} done, {len(todo)} to "
