@@ -331,6 +331,26 @@ def test_eval_into_a_checkpoint_folder_is_refused(tmp_path: Path) -> None:
     assert (folder / "eval_info.json").read_text() == '{"recorded": true}'
 
 
+def test_an_out_that_holds_a_run_is_refused_before_the_policy_loads(tmp_path: Path, capsys,
+                                                                  monkeypatch) -> None:
+    """A forgotten --resume was said only after the policy had loaded and the render
+    self-check had run (5-10 s with a checkpoint)."""
+    import so101_sim.harness as harness
+    from so101_sim.cli import main
+
+    def no_load(*args, **kwargs):
+        raise AssertionError("the policy loaded before --out was checked")
+
+    monkeypatch.setattr(harness, "load_policy", no_load)
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / "episodes.jsonl").write_text("")
+    assert main(["eval", "--policy", "expert", "--out", str(folder)]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"so101-sim eval: error: {folder} already holds an evaluation (episodes.jsonl); pass "
+        "--resume to finish it, or choose another --out"]
+
+
 def test_eval_or_train_into_a_dataset_folder_is_refused(tmp_path: Path) -> None:
     """`--out` a LeRobotDataset (say, --out the --dataset) put the run's videos/, report or
     checkpoints, or the demo's video and images, among the dataset's files."""

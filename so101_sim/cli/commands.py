@@ -116,7 +116,7 @@ AGAINST_DEFAULTS = {"margin": 0.0, "indifference": 0.10, "alpha": 0.05}
 def resolve_eval_flags(args: argparse.Namespace) -> None:
     """Fill eval's defaults in `args`, refusing a flag the run would ignore: --task,
     --episodes or --seed-start beside --against (RUN decides them), a sequential-test flag
-    without --against, or --resume without --out."""
+    without --against, or --resume without --out; and an --out it must not write into."""
     if args.resume and args.out is None:
         raise ValueError("--resume given without --out: without it every run gets a new "
                          "outputs/eval/<policy>-<task>-<time> folder, so there is nothing to "
@@ -156,6 +156,10 @@ def resolve_eval_flags(args: argparse.Namespace) -> None:
         from so101_sim.harness.sequential import SequentialPairedTest
 
         SequentialPairedTest(args.margin, args.indifference, args.alpha, args.max_episodes)
+    if args.out is not None and not ("," in args.task or args.task == "all"):
+        from so101_sim.harness.results import RunDir
+
+        RunDir(args.out).check_target(args.resume)  # a forgotten --resume: said before loading
 
 
 def cmd_eval(args: argparse.Namespace) -> int:

@@ -64,6 +64,16 @@ class RunDir:
         self.videos_dir = self.path / "videos"
         self.setups: list[dict[str, Any]] = []  # those its episodes ran with (``prepare``)
 
+    def check_target(self, resume: bool) -> None:
+        """Refuse a folder an eval must not write into; it needs no policy, so ``eval`` asks
+        before it loads one."""
+        if (what := foreign_folder(self.path)) is not None:  # e.g. --out the --policy folder
+            raise ValueError(f"{self.path} {what}; an eval writes {INFO}, report.md and "
+                             "videos/ there, over or among its files; choose another --out")
+        if self.episodes_path.exists() and not resume:
+            raise ValueError(f"{self.path} already holds an evaluation ({EPISODES}); pass "
+                             "--resume to finish it, or choose another --out")
+
     def prepare(self, identity: dict[str, Any], resume: bool, may_grow: tuple[str, ...] = (),
                 setup: dict[str, Any] | None = None) -> dict[int, EpisodeRecord]:
         """Create the folder, or check it for ``--resume``; return the episodes already done.
@@ -71,12 +81,7 @@ class RunDir:
         starts with the shorter one's seeds) may be larger than the folder's on resume.
         `setup` (``utils.versions.run_setup``) joins the setups its episodes ran with."""
         old: dict[str, Any] = {}
-        if (what := foreign_folder(self.path)) is not None:  # e.g. --out the --policy folder
-            raise ValueError(f"{self.path} {what}; an eval writes {INFO}, report.md and "
-                             "videos/ there, over or among its files; choose another --out")
-        if self.episodes_path.exists() and not resume:
-            raise ValueError(f"{self.path} already holds an evaluation ({EPISODES}); pass "
-                             "--resume to finish it, or choose another --out")
+        self.check_target(resume)
         if resume and self.config_path.exists():
             try:
                 old = json.loads(self.config_path.read_text(encoding="utf-8"))
