@@ -161,7 +161,6 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_pl
     log(f"so101-sim eval: {info.name} on {spec.name}, "
         f"{seed_span(seed_start, seed_start + episodes - 1)} ({len(done)} done, {len(todo)} to "
         f"run), {counted(min(n_envs, max(1, len(todo))), 'env')}; images: {rendering.label}")
-
     t_start = time.perf_counter()
     n_run, workers = 0, PoolInfo(backend, 0)
     forwards_seen = forward_stats()
