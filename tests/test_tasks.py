@@ -311,3 +311,22 @@ def test_lerobot_plugin_features_follow_the_task():
     assert {k for k in cfg.features if k.startswith("pixels/")} == {"pixels/front",
                                                                     "pixels/side"}
     assert cfg.gym_kwargs["task"] == "tidy" and cfg.episode_length == 720
+
+
+def test_a_suite_into_a_folder_with_runs_needs_resume_before_anything_loads(tmp_path,
+                                                                           monkeypatch):
+    """Its second task's folder already holds a run: said before the first policy loads,
+    not after the first task has run."""
+    import so101_sim.harness.policies as policies
+    from so101_sim.harness.suite import evaluate_suite
+
+    def no_load(*args, **kwargs):
+        raise AssertionError("a policy loaded before the folders were checked")
+
+    monkeypatch.setattr(policies, "load_policy", no_load)
+    (tmp_path / "out" / "lift").mkdir(parents=True)
+    (tmp_path / "out" / "lift" / "episodes.jsonl").write_text("")
+    with pytest.raises(ValueError, match=r"out/lift already holds an evaluation "
+                                         r"\(episodes.jsonl\); pass --resume"):
+        evaluate_suite("expert", ["pick_place", "lift"], out_dir=tmp_path / "out", episodes=1)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["lift"]

@@ -52,6 +52,7 @@ def evaluate_suite(policy: str, tasks: Sequence[str], *,
     videos, image_size, resume, ...) to ``evaluate`` for every task.
     """
     from so101_sim.harness.policies import load_policy
+    from so101_sim.harness.results import RunDir
     from so101_sim.harness.runner import evaluate
 
     if out_dir is None:
@@ -79,6 +80,8 @@ def evaluate_suite(policy: str, tasks: Sequence[str], *,
         for spec in specs:
             check_unseen_seeds(demos, spec, seeds,
                                bool(evaluate_kwargs.get("allow_train_seeds")))
+    for spec in specs:  # a forgotten --resume is said before the first policy loads
+        RunDir(out / spec.name).check_target(bool(evaluate_kwargs.get("resume")))
     t0 = time.perf_counter()
     results: dict[str, dict[str, Any]] = {}
     for spec in specs:
