@@ -156,7 +156,9 @@ def resolve_eval_flags(args: argparse.Namespace) -> None:
         from so101_sim.harness.sequential import SequentialPairedTest
 
         SequentialPairedTest(args.margin, args.indifference, args.alpha, args.max_episodes)
-    if args.out is not None and not ("," in args.task or args.task == "all"):
+    from so101_sim.harness.suite import names_several_tasks
+
+    if args.out is not None and not names_several_tasks(args.task):
         from so101_sim.harness.results import RunDir
 
         RunDir(args.out).check_target(args.resume)  # a forgotten --resume: said before loading
@@ -164,6 +166,7 @@ def resolve_eval_flags(args: argparse.Namespace) -> None:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from so101_sim.harness import evaluate, load_policy
+    from so101_sim.harness.suite import names_several_tasks
     from so101_sim.utils.collector import startup_objects
 
     resolve_eval_flags(args)
@@ -175,7 +178,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                                  ("batch_size", args.policy_batch),
                                  ("precision", args.precision),
                                  ("camera_map", args.camera_map)) if v is not None}
-    suite = "," in args.task or args.task == "all"  # one table over several tasks
+    suite = names_several_tasks(args.task)  # one table over several tasks
     try:
         checkpoint = _checkpoint_dir(args)
         if checkpoint is not None:
@@ -237,7 +240,9 @@ def _checkpoint_dir(args: argparse.Namespace) -> Path | None:
     whose GL line would only come before the error."""
     text = args.policy
     if text == "baseline":
-        if "," in args.task or args.task == "all" or args.against:
+        from so101_sim.harness.suite import names_several_tasks
+
+        if names_several_tasks(args.task) or args.against:
             return None
         from so101_sim.harness.baselines import baseline_checkpoint
         from so101_sim.tasks import load_task

@@ -19,6 +19,7 @@ from so101_sim.dataset import EVAL_SEED_START
 from so101_sim.harness.compare import RunSide, load_run, seed_ranges, seen_render_size, setup_note
 from so101_sim.harness.results import INFO
 from so101_sim.harness.sequential import UNDECIDED, SequentialPairedTest, Verdict
+from so101_sim.harness.suite import names_several_tasks
 from so101_sim.utils.versions import setup_differences
 
 
@@ -66,7 +67,7 @@ def reference_task(reference: RunSide, task: str | Path | None) -> str | Path:
     if task is None:
         return reference.task
     name = None
-    if not ("," in str(task) or str(task) == "all"):  # a list of tasks is never one run's
+    if not names_several_tasks(task):  # a list of tasks is never one run's
         from so101_sim.tasks import load_task
 
         name = load_task(task).name

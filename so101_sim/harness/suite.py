@@ -27,6 +27,11 @@ from so101_sim.utils.disk import note_default_out
 SUITE_INFO = "eval_info.json"
 
 
+def names_several_tasks(task: str | Path) -> bool:
+    """True for a --task that ``task_list`` reads as a list ("all" or "a,b"), not one task."""
+    return "," in str(task) or str(task).strip() == "all"
+
+
 def task_list(text: str) -> list[str]:
     """``"all"`` or comma-separated task names/paths -> task list; each one is checked."""
     names = available_tasks() if text.strip() == "all" else [
