@@ -15,6 +15,7 @@ import pytest
 
 from so101_sim.harness.sequential import (
     NOT_WORSE,
+    TRUNCATION,
     UNDECIDED,
     WORSE,
     SequentialPairedTest,
@@ -133,6 +134,30 @@ def test_batch_agrees_with_one_pair_at_a_time():
                 assert one.statistic["e_worse"] >= 1 / ALPHA
             elif one.verdict == NOT_WORSE:
                 assert one.statistic["e_not_worse"] >= 1 / ALPHA
+
+
+@pytest.mark.parametrize("truncation", [0.5, 0.95])
+def test_other_stake_caps_keep_the_error_bound_and_change_only_the_power(truncation):
+    # validity needs only stakes that keep every factor positive, so any cap in (0, 1) holds
+    # alpha; the cap moves how soon a real regression is called (benchmarks/against_limits.py)
+    rng = np.random.default_rng([7, int(truncation * 100)])
+    for p_new, wrong in ((0.9, WORSE), (0.8, NOT_WORSE)):  # each null's boundary, margin 0
+        a, b = paired(rng, SIMS, HORIZON, 0.9, p_new, 0.5)
+        verdicts, _ = batch_verdicts(a, b, truncation=truncation)
+        assert float(np.mean(verdicts == wrong)) < ALPHA, (truncation, wrong)
+    a, b = paired(rng, 500, HORIZON, 0.9, 0.75, 0.5)
+    shipped, by_default = batch_verdicts(a, b), batch_verdicts(a, b, truncation=TRUNCATION)
+    assert (shipped[0] == by_default[0]).all() and (shipped[1] == by_default[1]).all()
+    timid = batch_verdicts(a, b, truncation=0.2)[1]
+    assert np.median(timid) > np.median(shipped[1]), "a smaller cap should bet less, stop later"
+
+
+@pytest.mark.parametrize("bad", [0, 1.0, 1.5, -0.2, "0.5", True])
+def test_a_stake_cap_outside_0_1_is_refused_with_the_value(bad):
+    a = np.ones((2, 5), dtype=bool)
+    with pytest.raises(ValueError, match=rf"truncation must be .*got {bad!r}") as err:
+        batch_verdicts(a, a, truncation=bad)
+    assert "e.g. truncation=0.75" in str(err.value)
 
 
 def test_fixed_n_baseline_has_its_power():

@@ -76,7 +76,7 @@ class _Design:
 
     @classmethod
     def make(cls, margin: Any, indifference: Any, alpha: Any,
-             max_episodes: Any) -> _Design:
+             max_episodes: Any, truncation: Any = TRUNCATION) -> _Design:
         m = _real(margin, "margin", "a fraction in [0, 1) (5 points = 0.05)",
                   "margin=0.05 (eval --margin 0.05)")
         if not 0 <= m < 1:
@@ -102,6 +102,10 @@ class _Design:
                 or max_episodes < 1):
             raise ValueError(f"max_episodes must be None or an integer >= 1, got "
                              f"{max_episodes!r}; e.g. max_episodes=400 (eval --max-episodes 400)")
+        t = _real(truncation, "truncation", "a fraction in (0, 1)", "truncation=0.75")
+        if not 0 < t < 1:
+            raise ValueError(f"truncation must be a fraction in (0, 1) of the largest safe "
+                             f"stake, got {truncation!r}; e.g. truncation=0.75 (the default)")
         # Payoff per unit stake for (a loss, a tie, a win). "worse" bets the pair difference
         # falls below -margin: worst case -(1 + m) on a win. "not worse" bets it rises above
         # -(margin + indifference): worst case -(1 - m - d) on a loss; none when m + d >= 1,
@@ -111,8 +115,8 @@ class _Design:
         y_not_worse = np.array([m + d - 1.0, m + d, 1.0 + m + d])
         down = 1.0 - m - d
         fractions = (np.arange(GRID) + 0.5) / GRID  # midpoints of (0, 1): uniform mixture
-        lam_worse = TRUNCATION / (1.0 + m) * fractions
-        lam_not_worse = TRUNCATION / (down if down > 0 else m + d) * fractions
+        lam_worse = t / (1.0 + m) * fractions
+        lam_not_worse = t / (down if down > 0 else m + d) * fractions
         return cls(m, d, a, None if max_episodes is None else int(max_episodes),
                    worse_table=np.log1p(np.outer(lam_worse, y_worse)),
                    not_worse_table=np.log1p(np.outer(lam_not_worse, y_not_worse)),
@@ -273,13 +277,14 @@ def sequential_verdict(pairs: Iterable[tuple[bool, bool]], margin: float = 0.0,
 
 
 def batch_verdicts(reference: Any, new: Any, margin: float = 0.0, indifference: float = 0.10,
-                   alpha: float = 0.05,
-                   max_episodes: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   alpha: float = 0.05, max_episodes: int | None = None,
+                   truncation: float = TRUNCATION) -> tuple[np.ndarray, np.ndarray]:
     """The test on many paired sequences at once (rows of two equal-shape 0/1 arrays).
 
     Same arithmetic as ``update``, vectorised over rows, so error rates and stopping times can
     be simulated on thousands of sequences in well under a second. Returns (verdict strings,
-    episodes used) per row.
+    episodes used) per row. ``truncation`` (the largest stake as a fraction of the largest safe
+    one) is there to simulate other designs; ``eval --against`` always uses ``TRUNCATION``.
     """
     a, b = np.asarray(reference), np.asarray(new)
     if a.ndim != 2 or a.shape != b.shape:
@@ -289,7 +294,7 @@ def batch_verdicts(reference: Any, new: Any, margin: float = 0.0, indifference: 
     if not (np.isin(a, (0, 1)).all() and np.isin(b, (0, 1)).all()):
         raise ValueError("reference and new must hold success flags (0/1 or bool) only; "
                          "e.g. rng.random((2000, 400)) < 0.9")
-    design = _Design.make(margin, indifference, alpha, max_episodes)
+    design = _Design.make(margin, indifference, alpha, max_episodes, truncation)
     rows, cols = a.shape
     limit = cols if design.max_episodes is None else min(cols, design.max_episodes)
     # running (losses, ties, wins) per row after each seed
