@@ -1,5 +1,6 @@
-"""One warning when the policy on a lerobot command line takes frames of another size than the
-sim sends.
+"""What to say when the policy on a lerobot command line takes frames the sim does not send:
+frames of another size (one warning), or a camera the sim does not send (an error for the
+policy types that would stop at their first step, else a warning).
 
 lerobot-eval, lerobot-rollout, lerobot-record with ``--policy.path`` and the async robot
 client build the policy apart from the env or robot, and neither lerobot nor the policy's
@@ -12,12 +13,19 @@ left alone. Imports neither torch nor lerobot.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from so101_sim.train.checkpoint import image_input_shapes, train_image_size
 
 POLICY_FLAGS = ("--policy.path", "--pretrained_name_or_path")  # lerobot CLIs, robot_client
+# lerobot 0.6 policy types whose forward indexes every image input they were trained on, so a
+# camera the sim does not send is a KeyError at the first step (modeling_act.py,
+# modeling_diffusion.py, modeling_multi_task_dit.py); pi0 and smolvla pad a missing camera with
+# an empty image instead.
+EVERY_CAMERA_TYPES = frozenset({"act", "diffusion", "multi_task_dit"})
 
 
 def policy_path(argv: Sequence[str]) -> tuple[Path, str] | None:
@@ -59,3 +67,41 @@ def size_warning(argv: Sequence[str], image_size: tuple[int, int], cameras: Sequ
     sender = "robot" if group == "--robot" else "env"
     return (f"{policy} takes camera frames of {shown}, and this {sender} sends "
             f"{image_size[0]}x{image_size[1]}: {fate}; add {flags}")
+
+
+@dataclass(frozen=True)
+class CameraGap:
+    """A local policy on the command line reads cameras the sim does not send."""
+
+    policy: Path
+    reads: tuple[str, ...]  # the policy's cameras, in its config's order
+    missing: tuple[str, ...]  # those the sim does not send
+    fatal: bool  # its type reads every camera (EVERY_CAMERA_TYPES): the first step would fail
+
+    def message(self, sender: str, sends: Sequence[str], fix: str) -> str:
+        """One line: what the policy reads, what the `sender` ("env", "robot") sends, the fix."""
+        sent = ", ".join(sends) if sends else "no camera frames"
+        needs = f"camera{'s' if len(self.missing) > 1 else ''} {', '.join(self.missing)}"
+        if self.missing != self.reads:
+            needs += f" (it reads {', '.join(self.reads)})"
+        fate = (f"its first step would stop with KeyError 'observation.images.{self.missing[0]}'"
+                if self.fatal else "lerobot would feed it an empty image for each")
+        return f"{self.policy} needs {needs}, and this {sender} sends {sent}: {fate}; {fix}"
+
+
+def camera_gap(argv: Sequence[str], cameras: Sequence[str]) -> CameraGap | None:
+    """The CameraGap of the local policy named on `argv` against the `cameras` sent, else None
+    (no local policy, one we cannot read, or every camera it reads is sent)."""
+    found = policy_path(argv)
+    if found is None:
+        return None
+    policy = found[0]
+    try:
+        reads = tuple(image_input_shapes(policy))
+        kind = json.loads((policy / "config.json").read_text(encoding="utf-8")).get("type")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None  # not a checkpoint config we can read: loading it will say so
+    missing = tuple(cam for cam in reads if cam not in cameras)
+    if not missing:
+        return None
+    return CameraGap(policy, reads, missing, kind in EVERY_CAMERA_TYPES)

@@ -224,3 +224,55 @@ def test_lerobot_eval_names_a_policy_that_takes_other_frames(monkeypatch, caplog
         f"--env.type={ENV_TYPE}: {shipped} takes camera frames of front 60x80, side 60x80, "
         f"and this env sends {H}x{W}: nothing on the way resizes them, so the policy would "
         "see the wrong picture; add --env.image_height=60 --env.image_width=80"]
+
+
+def _policy_config(folder, kind: str, cameras: list[str]):
+    """A checkpoint's config.json alone: all the camera check reads (as data)."""
+    import json
+
+    folder.mkdir()
+    (folder / "config.json").write_text(json.dumps({"type": kind, "input_features": {
+        f"observation.images.{cam}": {"type": "VISUAL", "shape": [3, 60, 80]}
+        for cam in cameras}}))
+    return folder
+
+
+def test_lerobot_eval_refuses_a_policy_that_reads_a_camera_the_env_does_not_send(
+        tmp_path, monkeypatch, caplog) -> None:
+    """`lerobot-eval --env.obs_type=state --policy.path=policy/pick_place_diffusion` built its
+    envs, loaded the policy and stopped at the first step with KeyError
+    'observation.images.front'. Now building the envs says why, in one line, with the fix."""
+    import sys
+    from pathlib import Path
+
+    from so101_sim.utils.lerobot_cli import TAG
+
+    shipped = Path(__file__).resolve().parents[1] / "policy" / "pick_place_diffusion"
+    monkeypatch.setattr(sys, "argv", ["lerobot-eval", f"--policy.path={shipped}"])
+    state = make_env_config(ENV_TYPE, obs_type="state", episode_length=EPISODE_LENGTH)
+    with pytest.raises(ValueError) as caught:
+        make_env(state, n_envs=1, use_async_envs=False)
+    assert getattr(caught.value, TAG) == f"--env.type={ENV_TYPE}"
+    assert str(caught.value) == (
+        f"{shipped} needs cameras front, side, and this env sends no camera frames: its first "
+        "step would stop with KeyError 'observation.images.front'; drop --env.obs_type=state "
+        "(the default, pixels_agent_pos, sends front, side)")
+
+    # a rig's camera name: the fix is so101-sim eval's camera map
+    rig = _policy_config(tmp_path / "rig", "act", ["top", "front"])
+    monkeypatch.setattr(sys, "argv", ["lerobot-eval", f"--policy.path={rig}"])
+    pixels = make_env_config(ENV_TYPE, image_height=60, image_width=80,
+                             episode_length=EPISODE_LENGTH)
+    with pytest.raises(ValueError, match=r"needs camera top \(it reads top, front\), and this "
+                       r"env sends front, side: .*--camera-map top=front$"):
+        make_env(pixels, n_envs=1, use_async_envs=False)
+
+    # a policy type that pads a missing camera (smolvla, pi0) runs, with one warning
+    vla = _policy_config(tmp_path / "vla", "smolvla", ["front", "wrist"])
+    monkeypatch.setattr(sys, "argv", ["lerobot-eval", f"--policy.path={vla}"])
+    with caplog.at_level("WARNING"):
+        close_envs(make_env(pixels, n_envs=1, use_async_envs=False))
+    assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == [
+        f"--env.type={ENV_TYPE}: {vla} needs camera wrist (it reads front, wrist), and this env "
+        "sends front, side: lerobot would feed it an empty image for each; `so101-sim eval "
+        f"--policy {vla}` renders any of front, side, wrist"]

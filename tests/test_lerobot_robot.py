@@ -243,6 +243,29 @@ def test_a_policy_that_takes_other_frames_is_named_at_connect(tmp_path, monkeypa
         f"picture; add {flags}"]
 
 
+def test_a_policy_that_reads_a_camera_the_robot_does_not_send_is_refused_at_connect(
+        tmp_path, monkeypatch):
+    """`lerobot-rollout --policy.path=policy/pick_place_diffusion --robot.camera_names='[front]'`
+    connected, loaded and stopped at the first step with KeyError 'observation.images.side'."""
+    from so101_sim.utils.lerobot_cli import TAG
+
+    monkeypatch.setattr(sys, "argv", ["lerobot-rollout", f"--policy.path={SHIPPED}"])
+    robot = _robot(tmp_path, camera_names=["front"])
+    with pytest.raises(ValueError) as caught:
+        robot.connect()
+    assert getattr(caught.value, TAG) == "--robot.type=so101_sim"
+    assert str(caught.value) == (
+        f"{SHIPPED} needs camera side (it reads front, side), and this robot sends front: its "
+        "first step would stop with KeyError 'observation.images.side'; add "
+        "--robot.camera_names='[front,side]'")
+    assert not robot.is_connected
+    with pytest.raises(LookupError):  # refused before it registered for the expert
+        connected_robot()
+    robot = _robot(tmp_path, camera_names=["front", "side"])
+    robot.connect()  # the fix it names
+    robot.disconnect()
+
+
 def test_the_expert_finds_its_robot_by_id(tmp_path):
     """Two sim robots in one process: the expert needs --teleop.robot_id, an unknown id names
     the connected ones, and a second robot with a taken id is refused without unregistering
