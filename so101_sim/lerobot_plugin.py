@@ -31,7 +31,7 @@ from lerobot.envs.utils import NEW_ROLLOUT_OPTION
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
 from so101_sim import ENV_ID
-from so101_sim.policy_frames import camera_gap, size_warning
+from so101_sim.policy_frames import env_input_problem, size_warning
 from so101_sim.sim import OBS_TYPES, env_state_size
 from so101_sim.tasks import ALL_CAMERAS, load_task
 from so101_sim.utils.lerobot_cli import config_errors, one_line_errors
@@ -155,7 +155,7 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         if n_envs < 1:
             raise ValueError(f"n_envs={n_envs} is invalid; expected at least 1")
         cameras = [k.split("/", 1)[1] for k in self.features if k.startswith("pixels/")]
-        self._check_cameras(cameras)
+        self._check_inputs(cameras)
         warning = size_warning(sys.argv, (self.image_height, self.image_width), cameras, "--env")
         if warning:  # lerobot-eval hands the policy these frames as they are
             logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE, warning)
@@ -171,27 +171,17 @@ class SO101PickPlaceEnvConfig(EnvConfig):
                 [make_one] * n_envs, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
         return {self.type: {0: vec}}
 
-    def _check_cameras(self, cameras: list[str]) -> None:
-        """Refuse (or warn, for a policy that pads missing cameras) a policy on the command
-        line that reads a camera these envs do not send, before any env is built."""
-        gap = camera_gap(sys.argv, cameras)
-        if gap is None:
+    def _check_inputs(self, cameras: list[str]) -> None:
+        """Refuse (or warn, for a policy type that does without) a policy on the command line
+        that reads an input these envs do not send, before any env is built."""
+        problem = env_input_problem(sys.argv, cameras, self.obs_type,
+                                    load_task(self.task).cameras)
+        if problem is None:
             return
-        task_cameras = load_task(self.task).cameras
-        if self.obs_type == "state" and set(gap.missing) <= set(task_cameras):
-            fix = (f"drop --env.obs_type={self.obs_type} (the default, pixels_agent_pos, sends "
-                   f"{', '.join(task_cameras)})")
-        else:
-            other = [cam for cam in gap.missing if cam not in ALL_CAMERAS]
-            fix = (f"`so101-sim eval --policy {gap.policy}` renders any of "
-                   f"{', '.join(ALL_CAMERAS)}"
-                   + (f" and maps other names with --camera-map, e.g. --camera-map "
-                      f"{other[0]}=front" if other else ""))
-        text = gap.message("env", cameras, fix)
-        if gap.fatal:
+        if problem.fatal:
             with config_errors(f"--env.type={ENV_TYPE}"):  # one line, as for a bad flag
-                raise ValueError(text)
-        logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE, text)
+                raise ValueError(problem.text)
+        logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE, problem.text)
 
 
 class LeRobotRolloutAdapter(gym.Wrapper):

@@ -1,6 +1,6 @@
-"""What to say when the policy on a lerobot command line takes frames the sim does not send:
-frames of another size (one warning), or a camera the sim does not send (an error for the
-policy types that would stop at their first step, else a warning).
+"""What to say when the policy on a lerobot command line takes inputs the sim does not send:
+frames of another size (one warning), or a camera or the environment state the sim does not
+send (an error for the policy types that would stop at their first step, else a warning).
 
 lerobot-eval, lerobot-rollout, lerobot-record with ``--policy.path`` and the async robot
 client build the policy apart from the env or robot, and neither lerobot nor the policy's
@@ -18,6 +18,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from so101_sim.tasks import ALL_CAMERAS
 from so101_sim.train.checkpoint import image_input_shapes, train_image_size
 
 POLICY_FLAGS = ("--policy.path", "--pretrained_name_or_path")  # lerobot CLIs, robot_client
@@ -26,6 +27,7 @@ POLICY_FLAGS = ("--policy.path", "--pretrained_name_or_path")  # lerobot CLIs, r
 # modeling_diffusion.py, modeling_multi_task_dit.py); pi0 and smolvla pad a missing camera with
 # an empty image instead.
 EVERY_CAMERA_TYPES = frozenset({"act", "diffusion", "multi_task_dit"})
+ENV_STATE = "observation.environment_state"
 
 
 def policy_path(argv: Sequence[str]) -> tuple[Path, str] | None:
@@ -70,38 +72,96 @@ def size_warning(argv: Sequence[str], image_size: tuple[int, int], cameras: Sequ
 
 
 @dataclass(frozen=True)
-class CameraGap:
-    """A local policy on the command line reads cameras the sim does not send."""
+class InputProblem:
+    """A policy input the sim does not send: `text` names it and the fix in one line; `fatal`
+    when the policy's type reads every input it was trained on (its first step would fail)."""
+
+    text: str
+    fatal: bool
+
+
+@dataclass(frozen=True)
+class PolicyReads:
+    """What the local policy on a lerobot command line reads, from its config.json (as data)."""
 
     policy: Path
-    reads: tuple[str, ...]  # the policy's cameras, in its config's order
-    missing: tuple[str, ...]  # those the sim does not send
-    fatal: bool  # its type reads every camera (EVERY_CAMERA_TYPES): the first step would fail
+    cameras: tuple[str, ...]  # in its config's order
+    env_state: bool  # observation.environment_state
+    fatal: bool  # its type is one of EVERY_CAMERA_TYPES
 
-    def message(self, sender: str, sends: Sequence[str], fix: str) -> str:
-        """One line: what the policy reads, what the `sender` ("env", "robot") sends, the fix."""
-        sent = ", ".join(sends) if sends else "no camera frames"
-        needs = f"camera{'s' if len(self.missing) > 1 else ''} {', '.join(self.missing)}"
-        if self.missing != self.reads:
-            needs += f" (it reads {', '.join(self.reads)})"
-        fate = (f"its first step would stop with KeyError 'observation.images.{self.missing[0]}'"
-                if self.fatal else "lerobot would feed it an empty image for each")
-        return f"{self.policy} needs {needs}, and this {sender} sends {sent}: {fate}; {fix}"
+    @classmethod
+    def of(cls, argv: Sequence[str]) -> PolicyReads | None:
+        """None without a local policy folder, or for one whose config we cannot read."""
+        found = policy_path(argv)
+        if found is None:
+            return None
+        try:
+            config = json.loads((found[0] / "config.json").read_text(encoding="utf-8"))
+            cameras = tuple(image_input_shapes(found[0]))
+            env_state = ENV_STATE in config["input_features"]
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            return None  # not a checkpoint config we can read: loading it will say so
+        return cls(found[0], cameras, env_state, config.get("type") in EVERY_CAMERA_TYPES)
+
+    def problem(self, missing: Sequence[str], sender: str, sent: str, fix: str) -> InputProblem:
+        """The InputProblem for `missing` inputs (camera names or ENV_STATE)."""
+        if list(missing) == [ENV_STATE]:
+            needs = f"{ENV_STATE} (the cube's and target's poses)"
+            key = ENV_STATE
+        else:
+            needs = f"camera{'s' if len(missing) > 1 else ''} {', '.join(missing)}"
+            if tuple(missing) != self.cameras:
+                needs += f" (it reads {', '.join(self.cameras)})"
+            key = f"observation.images.{missing[0]}"
+        fate = (f"its first step would stop with KeyError '{key}'" if self.fatal else
+                "lerobot would run it without that input" if key == ENV_STATE else
+                "lerobot would feed it an empty image for each")
+        return InputProblem(f"{self.policy} needs {needs}, and this {sender} sends {sent}: "
+                            f"{fate}; {fix}", self.fatal)
 
 
-def camera_gap(argv: Sequence[str], cameras: Sequence[str]) -> CameraGap | None:
-    """The CameraGap of the local policy named on `argv` against the `cameras` sent, else None
-    (no local policy, one we cannot read, or every camera it reads is sent)."""
-    found = policy_path(argv)
-    if found is None:
+def _eval_fix(reads: PolicyReads, missing: Sequence[str]) -> str:
+    other = [cam for cam in missing if cam not in ALL_CAMERAS]
+    return (f"`so101-sim eval --policy {reads.policy}` renders any of {', '.join(ALL_CAMERAS)}"
+            + (f" and maps other names with --camera-map, e.g. --camera-map {other[0]}=front"
+               if other else ""))
+
+
+def env_input_problem(argv: Sequence[str], cameras: Sequence[str], obs_type: str,
+                      task_cameras: Sequence[str]) -> InputProblem | None:
+    """What lerobot-eval's envs (`--env.obs_type`, the task's `cameras`) fail to send the local
+    policy on `argv`, or None."""
+    reads = PolicyReads.of(argv)
+    if reads is None:
         return None
-    policy = found[0]
-    try:
-        reads = tuple(image_input_shapes(policy))
-        kind = json.loads((policy / "config.json").read_text(encoding="utf-8")).get("type")
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return None  # not a checkpoint config we can read: loading it will say so
-    missing = tuple(cam for cam in reads if cam not in cameras)
-    if not missing:
+    sent = ", ".join(cameras) or "no camera frames"
+    if missing := [cam for cam in reads.cameras if cam not in cameras]:
+        fix = (f"drop --env.obs_type={obs_type} (the default, pixels_agent_pos, sends "
+               f"{', '.join(task_cameras)})"
+               if obs_type == "state" and set(missing) <= set(task_cameras)
+               else _eval_fix(reads, missing))
+        return reads.problem(missing, "env", sent, fix)
+    if reads.env_state and obs_type == "pixels_agent_pos":
+        return reads.problem([ENV_STATE], "env", f"{sent} and the joints",
+                             "add --env.obs_type=pixels_agent_pos_env_state")
+    return None
+
+
+def robot_input_problem(argv: Sequence[str], cameras: Sequence[str]) -> InputProblem | None:
+    """What the sim robot (`--robot.camera_names` = `cameras`) fails to send the local policy on
+    `argv`, or None."""
+    reads = PolicyReads.of(argv)
+    if reads is None:
         return None
-    return CameraGap(policy, reads, missing, kind in EVERY_CAMERA_TYPES)
+    sent = ", ".join(cameras)
+    if missing := [cam for cam in reads.cameras if cam not in cameras]:
+        fix = (f"add --robot.camera_names='[{','.join(reads.cameras)}]'"
+               if set(reads.cameras) <= set(ALL_CAMERAS) else
+               f"the sim's cameras are {', '.join(ALL_CAMERAS)}; " + _eval_fix(reads, missing))
+        return reads.problem(missing, "robot", sent, fix)
+    if reads.env_state:
+        return reads.problem([ENV_STATE], "robot", f"{sent} and the joints, as the real arm does",
+                             "evaluate it in the env: `so101-sim eval --policy "
+                             f"{reads.policy}`, or lerobot-eval with "
+                             "--env.obs_type=pixels_agent_pos_env_state")
+    return None

@@ -226,14 +226,16 @@ def test_lerobot_eval_names_a_policy_that_takes_other_frames(monkeypatch, caplog
         "see the wrong picture; add --env.image_height=60 --env.image_width=80"]
 
 
-def _policy_config(folder, kind: str, cameras: list[str]):
-    """A checkpoint's config.json alone: all the camera check reads (as data)."""
+def _policy_config(folder, kind: str, cameras: list[str], env_state: bool = False):
+    """A checkpoint's config.json alone: all the input check reads (as data)."""
     import json
 
+    features = {f"observation.images.{cam}": {"type": "VISUAL", "shape": [3, 60, 80]}
+                for cam in cameras}
+    if env_state:
+        features["observation.environment_state"] = {"type": "ENV", "shape": [10]}
     folder.mkdir()
-    (folder / "config.json").write_text(json.dumps({"type": kind, "input_features": {
-        f"observation.images.{cam}": {"type": "VISUAL", "shape": [3, 60, 80]}
-        for cam in cameras}}))
+    (folder / "config.json").write_text(json.dumps({"type": kind, "input_features": features}))
     return folder
 
 
@@ -276,3 +278,24 @@ def test_lerobot_eval_refuses_a_policy_that_reads_a_camera_the_env_does_not_send
         f"--env.type={ENV_TYPE}: {vla} needs camera wrist (it reads front, wrist), and this env "
         "sends front, side: lerobot would feed it an empty image for each; `so101-sim eval "
         f"--policy {vla}` renders any of front, side, wrist"]
+
+
+def test_lerobot_eval_refuses_a_policy_that_reads_the_env_state_without_its_obs_type(
+        tmp_path, monkeypatch, caplog) -> None:
+    """A checkpoint trained with observation.environment_state under the default obs_type: a
+    KeyError at the first step before; now one line naming the obs_type that sends it."""
+    import sys
+
+    policy = _policy_config(tmp_path / "p", "diffusion", ["front", "side"], env_state=True)
+    monkeypatch.setattr(sys, "argv", ["lerobot-eval", f"--policy.path={policy}"])
+    size = {"image_height": 60, "image_width": 80, "episode_length": EPISODE_LENGTH}
+    with pytest.raises(ValueError) as caught:
+        make_env(make_env_config(ENV_TYPE, **size), n_envs=1, use_async_envs=False)
+    assert str(caught.value) == (
+        f"{policy} needs observation.environment_state (the cube's and target's poses), and "
+        "this env sends front, side and the joints: its first step would stop with KeyError "
+        "'observation.environment_state'; add --env.obs_type=pixels_agent_pos_env_state")
+    with caplog.at_level("WARNING"):
+        close_envs(make_env(make_env_config(ENV_TYPE, obs_type="pixels_agent_pos_env_state",
+                                            **size), n_envs=1, use_async_envs=False))
+    assert [r for r in caplog.records if r.levelname == "WARNING"] == []

@@ -265,6 +265,17 @@ def test_a_policy_that_reads_a_camera_the_robot_does_not_send_is_refused_at_conn
     robot.connect()  # the fix it names
     robot.disconnect()
 
+    # the environment state: the robot sends what the real arm does, so the env is the fix
+    config = json.loads((SHIPPED / "config.json").read_text())
+    config["input_features"]["observation.environment_state"] = {"type": "ENV", "shape": [10]}
+    (tmp_path / "p").mkdir()
+    (tmp_path / "p" / "config.json").write_text(json.dumps(config))
+    monkeypatch.setattr(sys, "argv", ["lerobot-rollout", f"--policy.path={tmp_path / 'p'}"])
+    with pytest.raises(ValueError, match=r"needs observation\.environment_state .*, and this "
+                       r"robot sends front, side and the joints, as the real arm does: .*"
+                       r"evaluate it in the env: `so101-sim eval --policy "):
+        _robot(tmp_path).connect()
+
 
 def test_the_expert_finds_its_robot_by_id(tmp_path):
     """Two sim robots in one process: the expert needs --teleop.robot_id, an unknown id names

@@ -31,8 +31,8 @@ from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnected
 from lerobot_robot_so101_sim import registry
 from lerobot_robot_so101_sim.config import ROBOT_TYPE, SO101SimConfig
 from lerobot_robot_so101_sim.dataset_events import unwatch_datasets, watch_datasets
-from so101_sim.policy_frames import camera_gap, size_warning
-from so101_sim.tasks import ALL_CAMERAS, load_task
+from so101_sim.policy_frames import robot_input_problem, size_warning
+from so101_sim.tasks import load_task
 from so101_sim.utils.lerobot_cli import config_errors
 from so101_sim.utils.units import FEATURE_NAMES
 
@@ -115,7 +115,7 @@ class SO101Sim(Robot):
         episode; a simulated arm needs no calibration, so `calibrate` changes nothing."""
         if self.is_connected:
             raise DeviceAlreadyConnectedError(f"{self} is already connected")
-        self._check_cameras()
+        self._check_inputs()
         registry.add(self)
         try:
             from so101_sim.sim import SO101Env
@@ -138,22 +138,16 @@ class SO101Sim(Robot):
         if warning:  # the policy was built apart from the robot: its frames would be wrong
             logger.warning("%s: %s", self, warning)
 
-    def _check_cameras(self) -> None:
-        """Refuse (or warn, for a policy that pads missing cameras) a policy on the command
-        line that reads a camera this robot does not send, before the scene is built."""
-        gap = camera_gap(sys.argv, self.camera_names)
-        if gap is None:
+    def _check_inputs(self) -> None:
+        """Refuse (or warn, for a policy type that does without) a policy on the command line
+        that reads an input this robot does not send, before the scene is built."""
+        problem = robot_input_problem(sys.argv, self.camera_names)
+        if problem is None:
             return
-        if set(gap.reads) <= set(ALL_CAMERAS):
-            fix = f"add --robot.camera_names='[{','.join(gap.reads)}]'"
-        else:
-            fix = (f"the sim's cameras are {', '.join(ALL_CAMERAS)}; `so101-sim eval --policy "
-                   f"{gap.policy} --camera-map {gap.missing[0]}=front` maps other names")
-        text = gap.message("robot", self.camera_names, fix)
-        if gap.fatal:
+        if problem.fatal:
             with config_errors(f"--robot.type={ROBOT_TYPE}"):  # one line, as for a bad flag
-                raise ValueError(text)
-        logger.warning("%s: %s", self, text)
+                raise ValueError(problem.text)
+        logger.warning("%s: %s", self, problem.text)
 
     def calibrate(self) -> None:
         """Nothing to calibrate: the sim's joints are LeRobot's units by construction."""
