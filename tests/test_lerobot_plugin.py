@@ -299,3 +299,17 @@ def test_lerobot_eval_refuses_a_policy_that_reads_the_env_state_without_its_obs_
         close_envs(make_env(make_env_config(ENV_TYPE, obs_type="pixels_agent_pos_env_state",
                                             **size), n_envs=1, use_async_envs=False))
     assert [r for r in caplog.records if r.levelname == "WARNING"] == []
+
+
+def test_python_m_lerobot_modules_count_as_lerobot_commands() -> None:
+    """`python -m lerobot.async_inference.robot_client --robot.task=nope` printed draccus's
+    traceback: its argv[0] is the module's file, not a lerobot-* script."""
+    from so101_sim.utils.lerobot_cli import command_name
+
+    site = "/venv/lib/python3.12/site-packages"
+    assert command_name(f"{site}/lerobot/async_inference/robot_client.py") == (
+        "lerobot.async_inference.robot_client")
+    assert command_name(f"{site}/lerobot/scripts/lerobot_eval.py") == "lerobot.scripts.lerobot_eval"
+    assert command_name("/venv/bin/lerobot-record") == "lerobot-record"
+    for other in ("/usr/bin/python", f"{site}/so101_sim/cli/__main__.py", "-c", ""):
+        assert command_name(other) is None, other

@@ -3,10 +3,10 @@
 lerobot's CLIs parse ``--env.*`` / ``--robot.*`` with draccus, which wraps the ValueError of a
 config's ``__post_init__`` in a ParsingError: what the user sees is some 40 lines of draccus
 frames with our message in the middle. ``config_errors`` tags such an error with the flag group
-it belongs to, and ``one_line_errors`` (installed by the plugins when a ``lerobot-*`` command
-imports them) prints a tagged error as ``lerobot-eval: error: --env.type=so101_pick_place:
-<message>``. Every other exception, and any use outside lerobot's commands, keeps Python's own
-report. Imports nothing heavy.
+it belongs to, and ``one_line_errors`` (installed by the plugins when a ``lerobot-*`` command or
+``python -m lerobot.<module>`` imports them) prints a tagged error as ``lerobot-eval: error:
+--env.type=so101_pick_place: <message>``. Every other exception, and any use outside lerobot's
+commands, keeps Python's own report. Imports nothing heavy.
 """
 
 from __future__ import annotations
@@ -42,11 +42,22 @@ def tagged(exc: BaseException | None) -> BaseException | None:
     return None
 
 
+def command_name(argv0: str) -> str | None:
+    """The lerobot command `argv0` runs (``lerobot-eval``, or the module of ``python -m
+    lerobot.async_inference.robot_client``, whose argv[0] is the module's file), else None."""
+    path = Path(argv0)
+    parts = path.parent.parts
+    if path.suffix == ".py" and "lerobot" in parts:
+        top = len(parts) - 1 - parts[::-1].index("lerobot")
+        return ".".join((*parts[top:], path.stem))
+    return path.name if path.name.startswith("lerobot") else None
+
+
 def one_line_errors(argv0: str | None = None) -> bool:
     """Under a ``lerobot-*`` command, report a tagged config error in one line; returns whether
     the hook is in place. Installed once; other exceptions go to the hook that was there."""
-    prog = Path(argv0 if argv0 is not None else (sys.argv[0] if sys.argv else "")).name
-    if not prog.startswith("lerobot"):
+    prog = command_name(argv0 if argv0 is not None else (sys.argv[0] if sys.argv else ""))
+    if prog is None:
         return False
     if getattr(sys.excepthook, TAG, False):
         return True
