@@ -725,3 +725,19 @@ def test_a_hub_repo_id_as_policy_says_how_to_fetch_it(tmp_path: Path, capsys,
     for local in ("runs/missing", "a/b/c", "/abs/path"):
         assert main(["eval", "--policy", local, "--episodes", "1"]) == 2
         assert "Hub repo id" not in capsys.readouterr().err, local
+
+
+def test_init_from_a_run_folder_suggests_init_from_not_policy(tmp_path: Path,
+                                                              monkeypatch) -> None:
+    """`train --init-from RUN` (the run folder, not its pretrained_model) got eval's hint:
+    "did you mean --policy RUN/pretrained_model? ... or --policy expert"."""
+    from so101_sim.train.checkpoint import init_weights_from
+
+    (tmp_path / "run" / "pretrained_model").mkdir(parents=True)
+    (tmp_path / "run" / "pretrained_model" / "config.json").write_text("{}")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(FileNotFoundError) as caught:
+        init_weights_from(object(), "run")  # the files are checked before the policy is read
+    assert str(caught.value).startswith("policy checkpoint run has no config.json; did you mean "
+                                        "--init-from run/pretrained_model? expected a lerobot ")
+    assert "--policy" not in str(caught.value)

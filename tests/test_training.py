@@ -422,9 +422,11 @@ def test_init_from_starts_a_new_run_from_a_checkpoint(dataset: Path, tiny: Path,
                                          r"\(size mismatch for "):
         train(dataset, tmp_path / "other", preset_name=str(tiny), steps=2, init_from=shipped,
               **fixed)
-    with pytest.raises(TrainError, match=r"--init-from: policy checkpoint .* has no config\.json"):
+    with pytest.raises(TrainError, match=r"--init-from: policy checkpoint .* has no config\.json"
+                       r"; did you mean --init-from .*base/pretrained_model\? ") as caught:
         train(dataset, tmp_path / "other", preset_name=str(tiny), steps=2,
               init_from=tmp_path / "base", **fixed)
+    assert "--policy" not in str(caught.value)  # eval's flag and its expert: not train's
     assert not list_checkpoints(tmp_path / "other")
 
 

@@ -68,26 +68,29 @@ def shipped_named(path: Path) -> list[Path]:
     return [shipped] if (shipped / "config.json").is_file() else []
 
 
-def check_files(path: Path) -> None:
+def check_files(path: Path, flag: str = "--policy") -> None:
+    """A checkpoint folder has lerobot's four files, else FileNotFoundError; `flag` is how the
+    user passed it, for the suggestions."""
     if not path.is_dir():
-        raise FileNotFoundError(f"policy checkpoint {path} not found; {_files_hint(path)}")
+        raise FileNotFoundError(f"policy checkpoint {path} not found; {_files_hint(path, flag)}")
     for name in ("config.json", "model.safetensors", "policy_preprocessor.json",
                  "policy_postprocessor.json"):
         if not (path / name).is_file():
             raise FileNotFoundError(f"policy checkpoint {path} has no {name}; "
-                                    f"{_files_hint(path)}")
+                                    f"{_files_hint(path, flag)}")
 
 
-def _files_hint(path: Path) -> str:
+def _files_hint(path: Path, flag: str) -> str:
     """What to pass instead of `path`; only built on a failed check (it searches nearby)."""
     hint = ("expected a lerobot checkpoint directory with config.json, model.safetensors and "
             "policy_preprocessor.json/policy_postprocessor.json (so101-sim train writes the "
             "final one to RUN/pretrained_model, lerobot-train to "
-            "outputs/train/<run>/checkpoints/<step>/pretrained_model), or --policy expert")
+            "outputs/train/<run>/checkpoints/<step>/pretrained_model)"
+            + (", or --policy expert" if flag == "--policy" else ""))
     near = nearby_policies(path) or shipped_named(path)
     if near:
-        return f"did you mean --policy {' or --policy '.join(map(str, near))}? " + hint
-    return hint + hub_id_hint(path, "--policy")
+        return f"did you mean {flag} {f' or {flag} '.join(map(str, near))}? " + hint
+    return hint + hub_id_hint(path, flag)
 
 
 def load_config(path: Path) -> Any:
@@ -269,7 +272,7 @@ def init_weights_from(policy: Any, path: str | Path) -> dict[str, Any]:
     from safetensors.torch import load
 
     path = Path(path).expanduser()
-    check_files(path)
+    check_files(path, "--init-from")
     then = load_config(path)
     if then.type != policy.config.type:
         raise ValueError(f"{path} holds a {then.type!r} policy; the preset builds a "
