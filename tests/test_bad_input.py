@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -741,3 +742,44 @@ def test_init_from_a_run_folder_suggests_init_from_not_policy(tmp_path: Path,
     assert str(caught.value).startswith("policy checkpoint run has no config.json; did you mean "
                                         "--init-from run/pretrained_model? expected a lerobot ")
     assert "--policy" not in str(caught.value)
+
+
+def test_an_export_onto_its_own_checkpoint_is_refused_and_the_card_kept(tmp_path: Path,
+                                                                       monkeypatch) -> None:
+    """`so101-sim export policy/pick_place_diffusion --eval E` (its --out defaults to that same
+    folder) rewrote the shipped card from a folder with no run beside it: the training log,
+    the success curve and the measured rate were gone."""
+    import shutil
+
+    from so101_sim.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    shutil.copytree(Path(__file__).parents[1] / "policy" / "pick_place_diffusion", "p")
+    card = Path("p/README.md").read_text()
+    from so101_sim.harness.export import export_policy
+
+    for out, said in (("p", "--out p is the checkpoint itself; "),
+                      ("./p/", "--out p is the checkpoint itself; "),
+                      ("p/copy", "--out p/copy lies inside the checkpoint p; ")):
+        with pytest.raises(ValueError, match=re.escape(said)):
+            export_policy(Path("p"), Path(out))
+    assert main(["export", "p", "--out", "p"]) == 2
+    assert Path("p/README.md").read_text() == card and not Path("p/copy").exists()
+
+
+def test_explain_refuses_an_out_that_is_a_dataset_or_a_checkpoint(tmp_path: Path) -> None:
+    """`explain --out DATA` wrote explain.html and explain.json among a dataset's files."""
+    from so101_sim.explain import explain
+    from so101_sim.explain.errors import ExplainError
+
+    data = tmp_path / "data"
+    (data / "meta").mkdir(parents=True)
+    (data / "meta" / "info.json").write_text("{}")
+    with pytest.raises(ExplainError, match=r"--out .*data is a LeRobotDataset \(meta/info.json\)"
+                                           r"; the page .* choose another --out"):
+        explain(data, None, out=data)  # refused before the dataset is opened
+    ckpt = Path(__file__).parents[1] / "policy" / "pick_place_diffusion"
+    with pytest.raises(ExplainError, match=r"holds a policy checkpoint"):
+        explain(data, ckpt, out=ckpt)
+    assert sorted(p.name for p in data.iterdir()) == ["meta"]
+    assert not (ckpt / "explain.html").exists()

@@ -27,6 +27,7 @@ from so101_sim.train.demos import normalization_stats
 from so101_sim.train.presets import load_preset, make_config, policy_features
 from so101_sim.utils.atomic import write_json_atomic, write_text_atomic
 from so101_sim.utils.locks import hold_folder, lock_scope
+from so101_sim.utils.paths import foreign_folder
 from so101_sim.utils.trust import UntrustedCheckpointError
 
 
@@ -109,6 +110,13 @@ def explain(dataset_dir: str | Path, policy_path: str | Path | None = None, epis
         raise ExplainError(f"--preset {preset} given with --policy: a checkpoint brings its "
                            "own config; drop --preset (it builds the untrained policy traced "
                            "when there is no --policy)")
+    if out is not None and write:  # before anything loads
+        if Path(out).is_file():
+            raise ExplainError(f"--out {out} is a file; expected a folder for explain.html and "
+                               "explain.json: choose another --out")
+        if (what := foreign_folder(Path(out))) is not None:
+            raise ExplainError(f"--out {out} {what}; the page and its numbers would go among "
+                               "its files: choose another --out")
     dataset_dir = Path(dataset_dir)
     meta_ds = _open_dataset(dataset_dir)
     meta = meta_ds.meta

@@ -276,6 +276,21 @@ def check_dest(dest: Path, digest: str, replace: bool) -> None:
                          "another --out")
 
 
+def check_not_itself(checkpoint: Path, dest: Path) -> None:
+    """An export in place would rewrite the checkpoint's own folder, card included, from a
+    folder with no training run beside it (its log and curve gone); inside it, among its files."""
+    here, there = checkpoint.resolve(), dest.resolve()
+    if there == here:
+        raise ValueError(f"--out {dest} is the checkpoint itself; an export rewrites its folder "
+                         "whole, and the card's training log and curve come from the run the "
+                         "checkpoint was trained in, so they would be lost: export the run's "
+                         f"checkpoint again (so101-sim export RUN/pretrained_model --out {dest} "
+                         "--eval EVAL), or choose another --out")
+    if here in there.parents:
+        raise ValueError(f"--out {dest} lies inside the checkpoint {checkpoint}; choose a "
+                         "folder outside it")
+
+
 def training_run(checkpoint: Path) -> Path | None:
     """The `so101-sim train` run folder a checkpoint belongs to (its log and curve), if any:
     RUN/checkpoints/step_N/pretrained_model or RUN/pretrained_model."""
@@ -313,6 +328,7 @@ def export_policy(checkpoint: Path, dest: Path,
     `eval_dir`: one eval folder, several (one per task), or a multi-task suite eval folder;
     each must have measured these weights. `replace`: `dest` may hold another policy."""
     checkpoint, dest = Path(checkpoint), Path(dest)
+    check_not_itself(checkpoint, dest)
     info_path = checkpoint / TRAIN_INFO
     if not (checkpoint / "model.safetensors").is_file() or not info_path.is_file():
         # only folders export takes: a lerobot-train checkpoint has no so101-sim sidecar
