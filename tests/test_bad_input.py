@@ -783,3 +783,24 @@ def test_explain_refuses_an_out_that_is_a_dataset_or_a_checkpoint(tmp_path: Path
         explain(data, ckpt, out=ckpt)
     assert sorted(p.name for p in data.iterdir()) == ["meta"]
     assert not (ckpt / "explain.html").exists()
+
+
+def test_an_export_leaves_out_folders_inside_the_checkpoint_and_says_so(
+        tmp_path: Path, monkeypatch) -> None:
+    """An eval written inside a checkpoint folder (`eval --out CKPT/ev`) shipped with its
+    export, videos and all: a checkpoint holds files only."""
+    import shutil
+
+    from so101_sim.harness.export import export_policy
+
+    monkeypatch.chdir(tmp_path)
+    shutil.copytree(Path(__file__).parents[1] / "policy" / "pick_place_diffusion", "p")
+    (tmp_path / "p" / "ev" / "videos").mkdir(parents=True)
+    (tmp_path / "p" / "ev" / "videos" / "seed_0.mp4").write_bytes(b"\0" * 1000)
+    notes: list[str] = []
+    out = export_policy(Path("p"), Path("out"), log=notes.append)
+    assert not (out / "ev").exists() and (out / "config.json").is_file()
+    assert notes == ["so101-sim export: note: p holds folders ['ev'], which no checkpoint has (an "
+                     "eval's --out inside it, say); the export leaves them out"]
+    assert sorted(f.name for f in out.iterdir()) == sorted(
+        f.name for f in Path("p").iterdir() if f.name != "ev")

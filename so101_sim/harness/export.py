@@ -347,6 +347,9 @@ def export_policy(checkpoint: Path, dest: Path,
     also = _read_evals(also_eval or [])
     digest = weights_digest(checkpoint / "model.safetensors")
     check_measured(evals + also, digest, checkpoint, log)
+    if folders := sorted(f.name for f in checkpoint.iterdir() if f.is_dir()):
+        log(f"so101-sim export: note: {checkpoint} holds folders {folders}, which no checkpoint "
+            "has (an eval's --out inside it, say); the export leaves them out")
     with folder_lock(dest.parent, f"the export {dest.name}", again="rerun",
                      name=export_lock(dest).name):
         check_dest(dest, digest, replace)
@@ -361,7 +364,8 @@ def _export(checkpoint: Path, dest: Path, info_path: Path, evals: list[tuple[Pat
     tmp = dest.with_name(dest.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        shutil.copytree(checkpoint, tmp, ignore=shutil.ignore_patterns("model.safetensors"))
+        shutil.copytree(checkpoint, tmp, ignore=lambda _, names: [  # the files, fp16 below
+            n for n in names if n == "model.safetensors" or (checkpoint / n).is_dir()])
         act_vae = _drop_act_vae(tmp)
         dropped = _fp16_copy(checkpoint / "model.safetensors", tmp / "model.safetensors",
                              drop=ACT_TRAINING_ONLY if act_vae else None)
