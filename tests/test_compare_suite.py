@@ -6,6 +6,8 @@ Before, a suite folder was taken for lerobot-eval's result ("keeps no seed per e
 from __future__ import annotations
 
 import json
+import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +37,7 @@ def suite(root: Path, name: str, outcomes: dict[str, dict[int, bool]]) -> Path:
                          "aggregated": {"n_episodes": len(ok), "n_success": k,
                                         "pc_success": 100.0 * k / len(ok)}}
         (out / task).mkdir(parents=True)
+        (out / task / "eval_config.json").write_text(json.dumps(config))  # as RunDir.prepare
         (out / task / "eval_info.json").write_text(json.dumps(
             {"per_episode": episodes, "config": config, "aggregated": results[task]["aggregated"]}))
     (out / SUITE_INFO).write_text(json.dumps(suite_info(results, 1.0, out, name)))
@@ -116,3 +119,20 @@ def test_an_interrupted_suite_is_named_as_one(tmp_path, two_suites, capsys):
     err = capsys.readouterr().err
     assert (f"{a} has no eval_info.json yet: it holds the tasks stack of an interrupted `eval "
             f"--task a,b`; finish it by running its command again with --out {a} --resume") in err
+
+
+def test_a_folder_of_runs_names_them_not_an_interrupted_suite(tmp_path, two_suites, capsys):
+    """`compare outputs/eval ...`, the folder every default --out goes under, was called "the
+    tasks ... of an interrupted `eval --task a,b`" and told to --resume."""
+    runs = tmp_path / "outputs" / "eval"
+    for age, name in enumerate(("expert-pick_place-20261205-104526",
+                                "expert-pick_place-20261205-104525")):
+        shutil.copytree(two_suites[0] / "stack", runs / name)
+        (runs / name / "episodes.jsonl").write_text("")
+        os.utime(runs / name / "episodes.jsonl", (1e9 - age, 1e9 - age))  # the first, latest
+    assert main(["compare", str(runs), str(two_suites[1] / "stack")]) == 2
+    err = capsys.readouterr().err
+    assert (f"{runs} has no eval_info.json: it is a folder of 2 eval runs "
+            "(expert-pick_place-20261205-104525, expert-pick_place-20261205-104526); pass one "
+            f"of them, e.g. {runs / 'expert-pick_place-20261205-104526'}") in err
+    assert "interrupted" not in err and "--resume" not in err

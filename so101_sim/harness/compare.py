@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from so101_sim.harness.results import EPISODES, INFO, check_eval_info
+from so101_sim.harness.results import CONFIG, EPISODES, INFO, check_eval_info
 from so101_sim.harness.stats import mcnemar_p_value, paired_difference_interval, wilson_interval
 from so101_sim.utils.atomic import write_json_atomic, write_text_atomic
 from so101_sim.utils.text import counted, md_row
@@ -140,12 +140,29 @@ def missing_info_reason(path: Path) -> str:
     if (path / EPISODES).is_file():
         return (f"has no {INFO} yet: its eval was interrupted; finish it by running its "
                 f"command again with --out {path} --resume")
-    tasks = sorted(p.parent.name for p in path.glob(f"*/{EPISODES}"))
-    if tasks:  # `eval --task a,b` writes the suite's file after its last task
-        return (f"has no {INFO} yet: it holds the tasks {', '.join(tasks)} of an interrupted "
-                f"`eval --task a,b`; finish it by running its command again with --out {path} "
-                "--resume")
+    runs = sorted(p.parent for p in path.glob(f"*/{EPISODES}"))
+    if runs and all(_config_task(run) == run.name for run in runs):
+        # `eval --task a,b` writes one folder per task, named after it, and the suite's file
+        # after its last task
+        return (f"has no {INFO} yet: it holds the tasks {', '.join(r.name for r in runs)} of "
+                f"an interrupted `eval --task a,b`; finish it by running its command again "
+                f"with --out {path} --resume")
+    if runs:  # a folder of runs, as outputs/eval holds each default --out
+        finished = [r for r in runs if (r / INFO).is_file()] or runs
+        latest = max(finished, key=lambda r: (r / EPISODES).stat().st_mtime)
+        shown = ", ".join(r.name for r in runs[:3]) + (
+            f" and {len(runs) - 3} more" if len(runs) > 3 else "")
+        return (f"has no {INFO}: it is a folder of {counted(len(runs), 'eval run')} ({shown}); "
+                f"pass one of them, e.g. {latest}")
     return f"has no {INFO}"
+
+
+def _config_task(run: Path) -> Any:
+    """The task an eval folder's eval_config.json names (None if it has none to read)."""
+    try:
+        return json.loads((run / CONFIG).read_text(encoding="utf-8")).get("task")
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 def check_comparable(a: RunSide, b: RunSide) -> None:
