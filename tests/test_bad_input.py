@@ -688,6 +688,37 @@ def test_a_lerobot_train_run_folder_as_policy_names_its_last_checkpoint(
     assert "is not a so101-sim checkpoint" in err and "did you mean" not in err
 
 
+def test_a_dataset_or_an_evaluation_given_as_policy_says_what_it_is(tmp_path: Path, capsys,
+                                                                   monkeypatch) -> None:
+    """`eval --policy DATA` or `--policy EVAL` (an eval's --out) only said "has no
+    config.json"; now the error says what the folder is and which command takes it."""
+    from so101_sim.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "data" / "meta").mkdir(parents=True)
+    (tmp_path / "data" / "meta" / "info.json").write_text("{}")
+    ev = tmp_path / "ev"
+    ev.mkdir()
+    (ev / "eval_config.json").write_text("{}")
+    assert main(["eval", "--policy", "data", "--episodes", "1"]) == 2
+    assert ("policy checkpoint data has no config.json; it is a LeRobotDataset, which `so101-sim "
+            "train --dataset data --out RUN` trains a policy on; expected a lerobot checkpoint"
+            ) in capsys.readouterr().err
+    assert main(["eval", "--policy", "ev", "--episodes", "1"]) == 2  # interrupted: no info
+    said = "(the --out of `so101-sim eval`, which `so101-sim compare` reads); expected"
+    assert f"policy checkpoint ev has no config.json; it is an evaluation {said}" in \
+        capsys.readouterr().err
+    (ev / "eval_info.json").write_text(json.dumps(
+        {"config": {"policy_details": {"checkpoint": "policy/pick_place_diffusion"}}}))
+    assert main(["eval", "--policy", "ev", "--episodes", "1"]) == 2
+    assert ("policy checkpoint ev has no config.json; it is an evaluation of the policy "
+            f"policy/pick_place_diffusion {said}") in capsys.readouterr().err
+    assert main(["export", "ev", "--out", "shipped"]) == 2  # export says it too
+    assert ("ev is not a so101-sim checkpoint (needs model.safetensors and so101_sim_train.json)"
+            "; it is an evaluation of the policy policy/pick_place_diffusion (the --out") in \
+        capsys.readouterr().err
+
+
 @pytest.mark.parametrize("typed", ["policy/pick_place_diffusion", "pick_place_diffusion"])
 def test_the_shipped_policy_typed_outside_the_checkout_is_named(typed: str, tmp_path: Path,
                                                                 capsys, monkeypatch) -> None:

@@ -25,6 +25,7 @@ from so101_sim.train.checkpoint import (
     damaged,
     demos_of,
     nearby_policies,
+    other_kind,
     ranges_text,
 )
 from so101_sim.utils.locks import folder_lock
@@ -336,7 +337,7 @@ def export_policy(checkpoint: Path, dest: Path,
                            if (p / TRAIN_INFO).is_file())
         raise FileNotFoundError(f"{checkpoint} is not a so101-sim checkpoint (needs "
                                 f"model.safetensors and {TRAIN_INFO}); "
-                                + (f"did you mean {near}?" if near else
+                                + (f"did you mean {near}?" if near else other_kind(checkpoint) +
                                    "pass a run's pretrained_model folder (RUN/pretrained_model "
                                    "or RUN/checkpoints/step_*/pretrained_model)"))
     check_processor_files(checkpoint)  # never ship a file that would run code when loaded

@@ -90,7 +90,26 @@ def _files_hint(path: Path, flag: str) -> str:
     near = nearby_policies(path) or shipped_named(path)
     if near:
         return f"did you mean {flag} {f' or {flag} '.join(map(str, near))}? " + hint
-    return hint + hub_id_hint(path, flag)
+    return other_kind(path) + hint + hub_id_hint(path, flag)
+
+
+def other_kind(path: Path) -> str:
+    """What a folder given for a policy is instead, if so101-sim wrote it ("" if not): an
+    evaluation (and the checkpoint it evaluated) or a dataset, and the command that takes it."""
+    if (path / "meta" / "info.json").is_file():
+        return (f"it is a LeRobotDataset, which `so101-sim train --dataset {path} --out RUN` "
+                "trains a policy on; ")
+    if not (path / "eval_config.json").is_file():
+        return ""
+    of = ""
+    try:  # eval_info.json names the checkpoint as it was typed for that run
+        info = json.loads((path / "eval_info.json").read_text(encoding="utf-8"))
+        checkpoint = info["config"]["policy_details"]["checkpoint"]
+        of = f" of the policy {checkpoint}" if isinstance(checkpoint, str) else ""
+    except (OSError, ValueError, KeyError, TypeError):
+        pass  # unfinished, or not ours to read: what it is still helps
+    return (f"it is an evaluation{of} (the --out of `so101-sim eval`, which `so101-sim compare` "
+            "reads); ")
 
 
 def load_config(path: Path) -> Any:
