@@ -6,11 +6,11 @@ below with draccus before the command line is parsed; without it, add
 ``--env.discover_packages_path=so101_sim.lerobot_plugin``::
 
     lerobot-eval --env.type=so101_pick_place --env.task=pick_place \\
-        --env.image_height=60 --env.image_width=80 \\
         --policy.path=outputs/train/.../pretrained_model --eval.n_episodes=50 --eval.batch_size=1
 
 ``--env.task`` is any task ``so101_sim.tasks.spec.load_task`` accepts (a name in envs/ or a TOML
-path); ``fps`` and ``episode_length`` default to the task's.
+path); ``fps`` and ``episode_length`` default to the task's, the frame size to the camera input
+size of a local ``--policy.path`` (else 480x640; ``--env.image_height/width`` choose).
 
 In Python, ``import so101_sim.lerobot_plugin`` and then
 ``lerobot.envs.factory.make_env(SO101PickPlaceEnvConfig(...), n_envs=1)``.
@@ -31,7 +31,7 @@ from lerobot.envs.utils import NEW_ROLLOUT_OPTION
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
 from so101_sim import ENV_ID
-from so101_sim.policy_frames import env_input_problem, size_warning
+from so101_sim.policy_frames import env_input_problem, policy_frame_size, size_warning
 from so101_sim.sim import OBS_TYPES, env_state_size
 from so101_sim.tasks import ALL_CAMERAS, load_task
 from so101_sim.utils.lerobot_cli import config_errors, one_line_errors
@@ -44,6 +44,7 @@ from so101_sim.workers.local import ensure_fork_server
 __path__: list[str] = []
 
 ENV_TYPE = "so101_pick_place"
+DEFAULT_FRAME = (480, 640)  # the recorded size; a policy on the command line may set another
 ACTION_DIM = len(FEATURE_NAMES)
 one_line_errors()  # a lerobot command given a bad --env.* value says so in one line
 
@@ -63,8 +64,8 @@ class SO101PickPlaceEnvConfig(EnvConfig):
     fps: int | None = None  # None: the task's [episode] fps (another value is refused)
     episode_length: int | None = None  # TimeLimit for lerobot-eval; None: the task's max_steps
     obs_type: str = "pixels_agent_pos"
-    image_height: int = 480
-    image_width: int = 640
+    image_height: int = DEFAULT_FRAME[0]  # default: the command line's policy's input size
+    image_width: int = DEFAULT_FRAME[1]
     render_mode: str | None = "rgb_array"  # lerobot-eval renders videos through env.render()
     features: dict[str, PolicyFeature] = field(default_factory=dict)
     features_map: dict[str, str] = field(
@@ -96,6 +97,13 @@ class SO101PickPlaceEnvConfig(EnvConfig):
                                  "pixels, e.g. --env.image_height=60 --env.image_width=80 (the "
                                  "shipped policy's input)")
         spec = load_task(self.task)
+        self._adopted_from = None
+        if self.obs_type != "state" and (self.image_height, self.image_width) == DEFAULT_FRAME:
+            # lerobot-eval hands the policy the frames as they are: left at the default, they
+            # would be the wrong picture for any policy trained on another size
+            found = policy_frame_size(sys.argv, spec.cameras)
+            if found is not None and found[0] != DEFAULT_FRAME:
+                (self.image_height, self.image_width), self._adopted_from = found
         self.fps = spec.fps if self.fps is None else self.fps
         self.episode_length = (spec.max_steps if self.episode_length is None
                                else self.episode_length)
@@ -156,6 +164,11 @@ class SO101PickPlaceEnvConfig(EnvConfig):
             raise ValueError(f"n_envs={n_envs} is invalid; expected at least 1")
         cameras = [k.split("/", 1)[1] for k in self.features if k.startswith("pixels/")]
         self._check_inputs(cameras)
+        if getattr(self, "_adopted_from", None) is not None:
+            logging.getLogger(__name__).info(
+                "--env.type=%s: sending %dx%d frames, the camera input size of %s (lerobot-eval "
+                "does not resize them; --env.image_height and --env.image_width choose another)",
+                ENV_TYPE, self.image_height, self.image_width, self._adopted_from)
         warning = size_warning(sys.argv, (self.image_height, self.image_width), cameras, "--env")
         if warning:  # lerobot-eval hands the policy these frames as they are
             logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE, warning)

@@ -7,7 +7,8 @@ client build the policy apart from the env or robot, and neither lerobot nor the
 processors resize camera frames: the shipped 60x80 policy given the default 480x640 frames
 centre-crops 54x72 out of their middle and fails every episode without a word. The env and the
 robot cannot see the policy, so they read its path from the command line and its
-``config.json`` (as data), and name the flags that fit. A hub id or an unreadable folder is
+``config.json`` (as data), and name the flags that fit; lerobot-eval's env, given no size,
+sends the policy's (``policy_frame_size``). A hub id or an unreadable folder is
 left alone. Imports neither torch nor lerobot.
 """
 
@@ -39,6 +40,30 @@ def policy_path(argv: Sequence[str]) -> tuple[Path, str] | None:
             if value and (Path(value).expanduser() / "config.json").is_file():
                 return Path(value).expanduser(), flag
     return None
+
+
+def policy_frame_size(argv: Sequence[str], cameras: Sequence[str],
+                      group: str = "--env") -> tuple[tuple[int, int], Path] | None:
+    """The one size of the camera inputs of the local policy a lerobot command line names, and
+    its folder, where that line sets no frame size itself (neither ``{group}.image_height``
+    nor ``{group}.image_width``, nor a ``--config_path`` that could): the frame size that env
+    should send. None where the line chooses, names no readable policy, or the policy's cameras
+    differ in size."""
+    chosen = (f"{group}.image_height", f"{group}.image_width", "--config_path")
+    if any(word.split("=", 1)[0] in chosen for word in argv):
+        return None
+    found = policy_path(argv)
+    if found is None:
+        return None
+    try:
+        sizes = {tuple(shape[1:3]) for cam, shape in image_input_shapes(found[0]).items()
+                 if cam in cameras}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None  # not a checkpoint config we can read: loading it will say so
+    if len(sizes) != 1:
+        return None
+    h, w = sizes.pop()
+    return (int(h), int(w)), found[0]
 
 
 def size_warning(argv: Sequence[str], image_size: tuple[int, int], cameras: Sequence[str],

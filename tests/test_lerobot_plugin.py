@@ -204,13 +204,15 @@ def test_lerobot_eval_rollout_runs_an_episode(built) -> None:
 
 def test_lerobot_eval_names_a_policy_that_takes_other_frames(monkeypatch, caplog) -> None:
     """`lerobot-eval --env.type=so101_pick_place --policy.path=policy/pick_place_diffusion`
-    without --env.image_height/width fed the 60x80 policy 480x640 frames (it centre-crops
-    54x72 of them): 0% and not a word. Building the envs now says so, once."""
+    with --env.image_height/width other than the policy's 60x80 feeds it frames it was not
+    trained on (it centre-crops 54x72 of them): 0% and not a word. Building the envs now says
+    so, once. (Without the flags the env sends the policy's size: the test below.)"""
     import sys
     from pathlib import Path
 
     shipped = Path(__file__).resolve().parents[1] / "policy" / "pick_place_diffusion"
-    monkeypatch.setattr(sys, "argv", ["lerobot-eval", f"--policy.path={shipped}"])
+    monkeypatch.setattr(sys, "argv", ["lerobot-eval", f"--policy.path={shipped}",
+                                      f"--env.image_height={H}", f"--env.image_width={W}"])
     found = {}
     for size in ((H, W), (60, 80)):
         caplog.clear()
@@ -224,6 +226,44 @@ def test_lerobot_eval_names_a_policy_that_takes_other_frames(monkeypatch, caplog
         f"--env.type={ENV_TYPE}: {shipped} takes camera frames of front 60x80, side 60x80, "
         f"and this env sends {H}x{W}: nothing on the way resizes them, so the policy would "
         "see the wrong picture; add --env.image_height=60 --env.image_width=80"]
+
+
+def test_lerobot_eval_sends_the_frame_size_of_the_policy_on_its_command_line(monkeypatch,
+                                                                          caplog) -> None:
+    """With no --env.image_height/width, the env sends the frames the command line's policy
+    takes (60x80 for the shipped one) and says so once: lerobot
+    resizes nothing, and the default 480x640 gave it 0% (with only a warning). A size on the
+    command line, or a --config_path that may hold one, is left as chosen."""
+    import sys
+    from pathlib import Path
+
+    shipped = Path(__file__).resolve().parents[1] / "policy" / "pick_place_diffusion"
+    for argv, size in ((["lerobot-eval", f"--policy.path={shipped}"], (60, 80)),
+                       (["lerobot-eval", "--policy.path", str(shipped)], (60, 80)),
+                       (["lerobot-eval", f"--policy.path={shipped}", "--env.image_height=480"],
+                        (480, 640)),
+                       (["lerobot-eval", f"--policy.path={shipped}", "--config_path=c.json"],
+                        (480, 640)),
+                       (["lerobot-eval", "--policy.path=lerobot/some_hub_id"], (480, 640))):
+        monkeypatch.setattr(sys, "argv", argv)
+        cfg = make_env_config(ENV_TYPE, episode_length=EPISODE_LENGTH)
+        assert (cfg.image_height, cfg.image_width) == size, argv
+        assert cfg.features["pixels/front"].shape == (*size, 3)
+    monkeypatch.setattr(sys, "argv", ["lerobot-eval", f"--policy.path={shipped}"])
+    cfg = make_env_config(ENV_TYPE, episode_length=EPISODE_LENGTH)
+    assert make_env_config(ENV_TYPE, obs_type="state").image_height == 480  # no frames sent
+    with caplog.at_level("INFO"):
+        envs = make_env(cfg, n_envs=1, use_async_envs=False)
+    try:
+        obs, _ = _vec(envs).reset(seed=[100000])
+        assert obs["pixels"]["front"].shape == (1, 60, 80, 3)
+    finally:
+        close_envs(envs)
+    said = [r.getMessage() for r in caplog.records if "sending" in r.getMessage()]
+    assert said == [f"--env.type={ENV_TYPE}: sending 60x80 frames, the camera input size of "
+                    f"{shipped} (lerobot-eval does not resize them; --env.image_height and "
+                    "--env.image_width choose another)"]
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
 
 
 def _policy_config(folder, kind: str, cameras: list[str], env_state: bool = False):

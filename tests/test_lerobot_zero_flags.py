@@ -45,19 +45,24 @@ def test_fps_and_episode_length_follow_the_task(tmp_path):
 
 def test_lerobot_eval_runs_without_discovery_flags(tmp_path):
     """`lerobot-eval --env.type=so101_pick_place --env.task=... --policy.path=...`, nothing else
-    about the plugin: the entry point users run, in its own process."""
+    about the plugin or the frame size: the entry point users run, in its own process. The env
+    sends the policy's input size (lerobot resizes nothing; 480x640 frames gave a 60x80 policy
+    0% before) and says so in one line."""
     ckpt = make_tiny_diffusion_checkpoint(tmp_path / "ckpt", input_size=(H, W),
                                           dataset_image_size=None)
     task = short_task(tmp_path, max_steps=32)
     out = tmp_path / "out"
     cmd = [str(BIN / "lerobot-eval"), f"--env.type={ENV_TYPE}", f"--env.task={task}",
-           f"--env.image_height={H}", f"--env.image_width={W}", f"--policy.path={ckpt}",
+           f"--policy.path={ckpt}",
            "--policy.device=cpu", "--eval.n_episodes=2", "--eval.batch_size=2",
            f"--output_dir={out}", "--seed=100000"]
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
     assert run.returncode == 0, run.stderr[-3000:]
     assert "Imported third-party plugin: lerobot_env_so101_sim" in run.stderr
+    assert (f"--env.type={ENV_TYPE}: sending {H}x{W} frames, the camera input size of {ckpt} "
+            "(lerobot-eval does not resize them; --env.image_height and --env.image_width "
+            "choose another)") in run.stderr
     info = json.loads((out / "eval_info.json").read_text())
     assert info["overall"]["n_episodes"] == 2
     assert "Traceback" not in run.stderr and "libtorchcodec" not in run.stderr
