@@ -45,11 +45,12 @@ def policy_path(argv: Sequence[str]) -> tuple[Path, str] | None:
 def policy_frame_size(argv: Sequence[str], cameras: Sequence[str],
                       group: str = "--env") -> tuple[tuple[int, int], Path] | None:
     """The one size of the camera inputs of the local policy a lerobot command line names, and
-    its folder, where that line sets no frame size itself (neither ``{group}.image_height``
-    nor ``{group}.image_width``, nor a ``--config_path`` that could): the frame size that env
-    should send. None where the line chooses, names no readable policy, or the policy's cameras
-    differ in size."""
-    chosen = (f"{group}.image_height", f"{group}.image_width", "--config_path")
+    its folder, where that line sets no frame size itself (no ``{group}.image_height``,
+    ``image_width``, ``render_height`` or ``render_width``, nor a ``--config_path`` that
+    could): the frame size that env or robot should send. None where the line chooses, names
+    no readable policy, or the policy's cameras differ in size."""
+    chosen = ("--config_path", *(f"{group}.{name}" for name in (
+        "image_height", "image_width", "render_height", "render_width")))
     if any(word.split("=", 1)[0] in chosen for word in argv):
         return None
     found = policy_path(argv)

@@ -215,8 +215,9 @@ def test_bad_config_values_are_named(tmp_path):
 
 def test_a_policy_that_takes_other_frames_is_named_at_connect(tmp_path, monkeypatch, caplog):
     """`lerobot-rollout --policy.path=policy/pick_place_diffusion --robot.type=so101_sim`
-    without the image flags fed the 60x80 policy 480x640 frames, which it centre-crops to
-    54x72: every episode failed and nothing said why."""
+    with image flags other than its 60x80 feeds it frames it centre-crops to 54x72: every
+    episode failed and nothing said why. (With no size flags the robot takes the policy's
+    size: the test below.)"""
     from so101_sim.policy_frames import size_warning
 
     flags = ("--robot.image_height=60 --robot.image_width=80 --robot.render_height=480 "
@@ -241,6 +242,41 @@ def test_a_policy_that_takes_other_frames_is_named_at_connect(tmp_path, monkeypa
         f"{robot}: {SHIPPED} takes camera frames of front 60x80, side 60x80, and this robot "
         "sends 48x64: nothing on the way resizes them, so the policy would see the wrong "
         f"picture; add {flags}"]
+
+
+def test_a_policy_on_the_command_line_sets_the_frames_when_no_size_is_given(tmp_path,
+                                                                          monkeypatch, caplog):
+    """The same command with no size flags now sends what the policy takes: its 60x80 input,
+    rendered at its demos' 480x640 and resized as they were (`so101-sim eval --faithful`'s
+    frames), said in the connect line. The shipped policy went from 0 of 2 episodes to 3 of
+    3 (README). Sizes on the command line are kept."""
+    def config(*flags: str) -> SO101SimConfig:
+        monkeypatch.setattr(sys, "argv", ["lerobot-rollout", *flags])
+        return SO101SimConfig(realtime=False, calibration_dir=tmp_path / "cal")
+
+    for flags in ([f"--policy.path={SHIPPED}"], ["--pretrained_name_or_path", str(SHIPPED)]):
+        cfg = config(*flags)
+        assert (cfg.image_size, cfg.render_size, cfg.sized_by) == ((60, 80), (480, 640), SHIPPED)
+    for flags in ([f"--policy.path={SHIPPED}", "--robot.image_height=480"],
+                  [f"--policy.path={SHIPPED}", "--robot.render_width=640"],
+                  [f"--policy.path={SHIPPED}", "--config_path=robot.json"],
+                  ["--policy.path=lerobot/some_hub_id"], []):
+        cfg = config(*flags)
+        assert (cfg.image_size, cfg.render_size, cfg.sized_by) == ((480, 640), (480, 640), None)
+
+    robot = SO101Sim(config(f"--policy.path={SHIPPED}"))
+    with caplog.at_level("INFO"):
+        robot.connect()
+    try:
+        assert robot.get_observation()["front"].shape == (60, 80, 3)
+    finally:
+        robot.disconnect()
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+    assert any(r.getMessage().endswith(
+        f"cameras front,side at 60x80 (rendered at 480x640, resized with so101_sim's "
+        f"resize_frames), the input size of {SHIPPED} (--robot.image_height/width and "
+        "render_height/width choose others), not paced (realtime=false)")
+        for r in caplog.records)
 
 
 def test_a_policy_that_reads_a_camera_the_robot_does_not_send_is_refused_at_connect(

@@ -7,12 +7,14 @@ config class ``XxxConfig`` of module ``lerobot_robot_so101_sim.config`` is turne
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot.robots.config import RobotConfig
 from lerobot.teleoperators.config import TeleoperatorConfig
 
+from so101_sim.policy_frames import policy_frame_size
 from so101_sim.tasks import load_task
 from so101_sim.tasks.spec import ALL_CAMERAS
 from so101_sim.utils.lerobot_cli import config_errors, one_line_errors
@@ -21,6 +23,7 @@ ROBOT_TYPE = "so101_sim"
 TELEOP_TYPE = "so101_sim_expert"
 EPISODE_END = ("auto", "reset", "hold")
 _SIZE_RANGE = (16, 2048)
+DEFAULT_IMAGE = (480, 640)
 one_line_errors()  # a lerobot command given a bad --robot.* value says so in one line
 
 
@@ -36,9 +39,11 @@ class SO101SimConfig(RobotConfig):
     seed: int = 0
     # Cameras in the observations, e.g. [front,side,wrist]; empty: the task's own.
     camera_names: list[str] = field(default_factory=list)
-    # Size of each camera image in the observations.
-    image_height: int = 480
-    image_width: int = 640
+    # Size of each camera image in the observations. Default: 480 x 640, or, when the command
+    # line names a local policy (--policy.path, --pretrained_name_or_path) and sets no image or
+    # render size, that policy's input size, rendered at its demos' size and resized.
+    image_height: int = DEFAULT_IMAGE[0]
+    image_width: int = DEFAULT_IMAGE[1]
     # Render at this size and resize to image_height x image_width with so101-sim's training
     # resize (so101_sim.utils.image_pipeline.resize_frames); 0: render at the image size.
     # 480 x 640 with 60 x 80 images feeds the shipped policy as `so101-sim eval --faithful` does.
@@ -96,6 +101,25 @@ class SO101SimConfig(RobotConfig):
             raise ValueError(f"--robot.render_height/width={render[0]}x{render[1]} is invalid; "
                              f"expected both 0 (render at the image size) or both {lo}..{hi}, "
                              "e.g. --robot.render_height=480 --robot.render_width=640")
+        self.sized_by: Path | None = None  # the policy whose input size the images took
+        if self.image_size == DEFAULT_IMAGE and render == (0, 0):
+            self._size_for_policy(names)
+
+    def _size_for_policy(self, cameras: tuple[str, ...]) -> None:
+        """The frames the command line's policy takes: lerobot hands it the robot's as they
+        are, so the default 480 x 640 would be the wrong picture for a 60 x 80 policy."""
+        from so101_sim.train.checkpoint import train_image_size
+
+        found = policy_frame_size(sys.argv, cameras, "--robot")
+        if found is None or found[0] == DEFAULT_IMAGE:
+            return
+        (self.image_height, self.image_width), self.sized_by = found
+        try:
+            render = train_image_size(found[1])
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            render = None  # no so101-sim training record: render at the image size
+        if render is not None and render != found[0]:
+            self.render_height, self.render_width = render
 
     @property
     def image_size(self) -> tuple[int, int]:

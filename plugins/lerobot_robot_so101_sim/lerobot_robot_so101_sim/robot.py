@@ -360,10 +360,13 @@ class SO101Sim(Robot):
 
     def _render_note(self) -> str:
         cfg = self.config
-        if cfg.render_size == cfg.image_size:
-            return ""
-        return (f" (rendered at {cfg.render_size[0]}x{cfg.render_size[1]}, resized with "
-                "so101_sim's resize_frames)")
+        note = "" if cfg.render_size == cfg.image_size else (
+            f" (rendered at {cfg.render_size[0]}x{cfg.render_size[1]}, resized with so101_sim's "
+            "resize_frames)")
+        if getattr(cfg, "sized_by", None) is not None:  # said, as the flags would have been
+            note += (f", the input size of {cfg.sized_by} (--robot.image_height/width and "
+                     "render_height/width choose others)")
+        return note
 
     # ------------------------------------------------------------------ for the expert
     @property
