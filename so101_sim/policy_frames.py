@@ -31,14 +31,30 @@ EVERY_CAMERA_TYPES = frozenset({"act", "diffusion", "multi_task_dit"})
 ENV_STATE = "observation.environment_state"
 
 
+# lerobot 0.6.1's async policy server calls predict_action_chunk on one observation at a time
+# and never fills the observation queues select_action keeps, which these types'
+# predict_action_chunk reads: every chunk fails on the server (AssertionError, or "stack
+# expects a non-empty TensorList"; lerobot issue #3861), logged there with no traceback, and
+# the robot client waits for actions for ever.
+SERVER_FAILS_TYPES = frozenset({"diffusion", "tdmpc", "vqbet"})
+
+
+def flag_value(argv: Sequence[str], flag: str) -> str | None:
+    """The value of `flag` on a command line (``FLAG=V`` or ``FLAG V``), if given."""
+    for i, word in enumerate(argv):
+        if word.startswith(flag + "="):
+            return word.split("=", 1)[1]
+        if word == flag and i + 1 < len(argv):
+            return argv[i + 1]
+    return None
+
+
 def policy_path(argv: Sequence[str]) -> tuple[Path, str] | None:
     """The local policy folder named on a lerobot command line and its flag, if any."""
-    for i, word in enumerate(argv):
-        for flag in POLICY_FLAGS:
-            value = (word.split("=", 1)[1] if word.startswith(flag + "=")
-                     else argv[i + 1] if word == flag and i + 1 < len(argv) else None)
-            if value and (Path(value).expanduser() / "config.json").is_file():
-                return Path(value).expanduser(), flag
+    for flag in POLICY_FLAGS:
+        value = flag_value(argv, flag)
+        if value and (Path(value).expanduser() / "config.json").is_file():
+            return Path(value).expanduser(), flag
     return None
 
 
@@ -173,9 +189,28 @@ def env_input_problem(argv: Sequence[str], cameras: Sequence[str], obs_type: str
     return None
 
 
+def async_server_problem(argv: Sequence[str]) -> InputProblem | None:
+    """The robot client asking lerobot's policy server for a type it cannot serve, or None."""
+    kind, path = flag_value(argv, "--policy_type"), flag_value(argv, "--pretrained_name_or_path")
+    if path is None or kind not in SERVER_FAILS_TYPES:
+        return None
+    from so101_sim.utils.versions import installed
+
+    return InputProblem(
+        f"--policy_type={kind}: lerobot {installed('lerobot')}'s policy server calls "
+        f"predict_action_chunk on one observation, without the observation history a {kind} "
+        "policy keeps, so every chunk fails on the server (lerobot issue #3861) and the arm "
+        "never moves; run it in one process instead: lerobot-rollout --strategy.type=base "
+        f"--policy.path={path} --robot.type=so101_sim, or so101-sim eval --policy {path}"
+        + ("; plugins/lerobot_robot_so101_sim/agreement.py async --patch-diffusion serves it "
+           "through a patched server" if kind == "diffusion" else ""), True)
+
+
 def robot_input_problem(argv: Sequence[str], cameras: Sequence[str]) -> InputProblem | None:
     """What the sim robot (`--robot.camera_names` = `cameras`) fails to send the local policy on
-    `argv`, or None."""
+    `argv` (or lerobot's policy server fails to run for it), or None."""
+    if (problem := async_server_problem(argv)) is not None:
+        return problem
     reads = PolicyReads.of(argv)
     if reads is None:
         return None

@@ -279,6 +279,37 @@ def test_a_policy_on_the_command_line_sets_the_frames_when_no_size_is_given(tmp_
         for r in caplog.records)
 
 
+def test_the_robot_client_asking_for_a_policy_the_server_cannot_run_is_refused(tmp_path,
+                                                                             monkeypatch):
+    """`python -m lerobot.async_inference.robot_client --policy_type=diffusion
+    --pretrained_name_or_path=policy/pick_place_diffusion ...` connected and then waited for
+    ever: lerobot 0.6.1's policy server failed every chunk of a diffusion policy (an empty
+    "Error in StreamActions: " line in its log, checked by hand). Now it stops at connect."""
+    from so101_sim.policy_frames import async_server_problem
+    from so101_sim.utils.lerobot_cli import TAG
+
+    client = "lerobot/async_inference/robot_client.py"
+    monkeypatch.setattr(sys, "argv", [client, "--policy_type=diffusion",
+                                      "--pretrained_name_or_path", str(SHIPPED)])
+    robot = _robot(tmp_path)
+    with pytest.raises(ValueError) as caught:
+        robot.connect()
+    assert getattr(caught.value, TAG) == "--robot.type=so101_sim"
+    assert str(caught.value).startswith(
+        "--policy_type=diffusion: lerobot 0.6.1's policy server calls predict_action_chunk on "
+        "one observation, without the observation history a diffusion policy keeps, so every "
+        "chunk fails on the server (lerobot issue #3861) and the arm never moves; run it in one "
+        f"process instead: lerobot-rollout --strategy.type=base --policy.path={SHIPPED} ")
+    assert not robot.is_connected
+    for kind in ("tdmpc", "vqbet"):  # the same queues; a hub id as much as a folder
+        problem = async_server_problem([client, "--policy_type", kind,
+                                        "--pretrained_name_or_path=user/repo"])
+        assert problem is not None and problem.fatal and f"a {kind} policy keeps" in problem.text
+    for argv in ([client, "--policy_type=act", f"--pretrained_name_or_path={SHIPPED}"],
+                 ["lerobot-rollout", "--policy_type=diffusion", f"--policy.path={SHIPPED}"]):
+        assert async_server_problem(argv) is None  # ACT serves; lerobot-rollout runs in-process
+
+
 def test_a_policy_that_reads_a_camera_the_robot_does_not_send_is_refused_at_connect(
         tmp_path, monkeypatch):
     """`lerobot-rollout --policy.path=policy/pick_place_diffusion --robot.camera_names='[front]'`
