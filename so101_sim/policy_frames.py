@@ -2,14 +2,14 @@
 frames of another size (one warning), or a camera or the environment state the sim does not
 send (an error for the policy types that would stop at their first step, else a warning).
 
-lerobot-eval, lerobot-rollout, lerobot-record with ``--policy.path`` and the async robot
-client build the policy apart from the env or robot, and neither lerobot nor the policy's
-processors resize camera frames: the shipped 60x80 policy given the default 480x640 frames
-centre-crops 54x72 out of their middle and fails every episode without a word. The env and the
-robot cannot see the policy, so they read its path from the command line and its
-``config.json`` (as data), and name the flags that fit; lerobot-eval's env, given no size,
-sends the policy's (``policy_frame_size``). A hub id or an unreadable folder is
-left alone. Imports neither torch nor lerobot.
+lerobot-eval and lerobot-rollout with ``--policy.path`` (0.6.1's lerobot-record takes none)
+and the async robot client build the policy apart from the env or robot, and neither lerobot
+nor the policy's processors resize camera frames: the shipped 60x80 policy given the default
+480x640 frames centre-crops 54x72 out of their middle and fails every episode without a word.
+The env and the robot cannot see the policy, so they read its path from the command line and
+its ``config.json`` (as data): given no size, they send the policy's (``policy_frame_size``);
+given another, they warn with the flags that fit. A hub id or an unreadable folder is left
+alone. Imports neither torch nor lerobot.
 """
 
 from __future__ import annotations
