@@ -31,10 +31,15 @@ from lerobot.envs.utils import NEW_ROLLOUT_OPTION
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
 from so101_sim import ENV_ID
-from so101_sim.policy_frames import env_input_problem, policy_frame_size, size_warning
+from so101_sim.policy_frames import (
+    env_input_problem,
+    missing_config_line,
+    policy_frame_size,
+    size_warning,
+)
 from so101_sim.sim import OBS_TYPES, env_state_size
 from so101_sim.tasks import ALL_CAMERAS, load_task
-from so101_sim.utils.lerobot_cli import config_errors, one_line_errors
+from so101_sim.utils.lerobot_cli import EXPLAINERS, config_errors, one_line_errors
 from so101_sim.utils.units import FEATURE_NAMES
 from so101_sim.workers.local import ensure_fork_server
 
@@ -47,6 +52,8 @@ ENV_TYPE = "so101_pick_place"
 DEFAULT_FRAME = (480, 640)  # the recorded size; a policy on the command line may set another
 ACTION_DIM = len(FEATURE_NAMES)
 one_line_errors()  # a lerobot command given a bad --env.* value says so in one line
+if missing_config_line not in EXPLAINERS:  # and a --policy.path that is a run folder
+    EXPLAINERS.append(missing_config_line)
 
 
 @EnvConfig.register_subclass(ENV_TYPE)

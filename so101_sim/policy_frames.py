@@ -15,12 +15,18 @@ alone. Imports neither torch nor lerobot.
 from __future__ import annotations
 
 import json
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from so101_sim.tasks import ALL_CAMERAS
-from so101_sim.train.checkpoint import image_input_shapes, train_image_size
+from so101_sim.train.checkpoint import (
+    image_input_shapes,
+    nearby_policies,
+    other_kind,
+    train_image_size,
+)
 
 POLICY_FLAGS = ("--policy.path", "--pretrained_name_or_path")  # lerobot CLIs, robot_client
 # lerobot 0.6 policy types whose forward indexes every image input they were trained on, so a
@@ -169,6 +175,36 @@ def _eval_fix(reads: PolicyReads, missing: Sequence[str]) -> str:
                if other else ""))
 
 
+def folder_problem(argv: Sequence[str]) -> InputProblem | None:
+    """A local folder given as the policy that holds no config.json: a training run (its
+    policy inside it), a dataset or an evaluation. lerobot stops on it with a traceback
+    ("config.json not found in ...") once the envs or the robot are up; None for the rest."""
+    for flag in POLICY_FLAGS:
+        value = flag_value(argv, flag)
+        folder = Path(value).expanduser() if value else None
+        if folder is None or not folder.is_dir() or (folder / "config.json").is_file():
+            continue
+        near = nearby_policies(folder)
+        what = (f"did you mean {flag}={near[0]}? (so101-sim train keeps its final policy in "
+                "RUN/pretrained_model, lerobot-train in checkpoints/last/pretrained_model)"
+                if near else other_kind(folder).removesuffix("; ") or
+                "expected a policy checkpoint folder (config.json, model.safetensors)")
+        return InputProblem(f"{flag}={value} holds no config.json, so lerobot cannot load a "
+                            f"policy from it; {what}", True)
+    return None
+
+
+def missing_config_line(exc: BaseException) -> str | None:
+    """For lerobot's ``FileNotFoundError: config.json not found in FOLDER``, raised while a
+    command line is parsed (before any env or robot exists): ``folder_problem``'s line."""
+    while exc is not None:
+        if isinstance(exc, FileNotFoundError) and "config.json" in str(exc):
+            problem = folder_problem(sys.argv)
+            return problem.text if problem is not None else None
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def env_input_problem(argv: Sequence[str], cameras: Sequence[str], obs_type: str,
                       task_cameras: Sequence[str]) -> InputProblem | None:
     """What lerobot-eval's envs (`--env.obs_type`, the task's `cameras`) fail to send the local
@@ -209,7 +245,7 @@ def async_server_problem(argv: Sequence[str]) -> InputProblem | None:
 def robot_input_problem(argv: Sequence[str], cameras: Sequence[str]) -> InputProblem | None:
     """What the sim robot (`--robot.camera_names` = `cameras`) fails to send the local policy on
     `argv` (or lerobot's policy server fails to run for it), or None."""
-    if (problem := async_server_problem(argv)) is not None:
+    if (problem := async_server_problem(argv) or folder_problem(argv)) is not None:
         return problem
     reads = PolicyReads.of(argv)
     if reads is None:

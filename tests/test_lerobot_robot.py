@@ -310,6 +310,48 @@ def test_the_robot_client_asking_for_a_policy_the_server_cannot_run_is_refused(t
         assert async_server_problem(argv) is None  # ACT serves; lerobot-rollout runs in-process
 
 
+def test_a_run_dataset_or_eval_folder_as_the_policy_is_one_line(tmp_path, monkeypatch):
+    """lerobot's CLIs parse --policy.path before anything starts and stopped with a traceback
+    ("FileNotFoundError: config.json not found in RUN") for a so101-sim run folder; the
+    robot client's --pretrained_name_or_path only fails in the server. Both now get one line
+    that names the policy inside, or what the folder is."""
+    import shutil
+
+    from so101_sim.policy_frames import folder_problem, missing_config_line
+    from so101_sim.utils.lerobot_cli import EXPLAINERS
+
+    assert missing_config_line in EXPLAINERS  # what the excepthook asks, at most once
+    assert EXPLAINERS.count(missing_config_line) == 1
+    run = tmp_path / "run"
+    shutil.copytree(SHIPPED, run / "pretrained_model")
+    (tmp_path / "data" / "meta").mkdir(parents=True)
+    (tmp_path / "data" / "meta" / "info.json").write_text("{}")
+    said = {}
+    for name in ("run", "data", "empty"):
+        (tmp_path / name).mkdir(exist_ok=True)
+        monkeypatch.setattr(sys, "argv", ["lerobot-rollout", f"--policy.path={tmp_path / name}"])
+        said[name] = missing_config_line(FileNotFoundError(
+            f"config.json not found in {tmp_path / name}"))
+    assert said["run"] == (
+        f"--policy.path={run} holds no config.json, so lerobot cannot load a policy from it; "
+        f"did you mean --policy.path={run / 'pretrained_model'}? (so101-sim train keeps its "
+        "final policy in RUN/pretrained_model, lerobot-train in checkpoints/last/pretrained_model)")
+    assert said["data"].endswith("from it; it is a LeRobotDataset, which `so101-sim train "
+                                 f"--dataset {tmp_path / 'data'} --out RUN` trains a policy on")
+    assert said["empty"].endswith("from it; expected a policy checkpoint folder (config.json, "
+                                  "model.safetensors)")
+    assert missing_config_line(FileNotFoundError("other.json not found")) is None
+    monkeypatch.setattr(sys, "argv", ["lerobot-rollout", f"--policy.path={SHIPPED}"])
+    assert folder_problem(sys.argv) is None  # a policy folder: nothing to say
+
+    monkeypatch.setattr(sys, "argv", ["lerobot/async_inference/robot_client.py",
+                                      "--policy_type=act", f"--pretrained_name_or_path={run}"])
+    robot = _robot(tmp_path)
+    with pytest.raises(ValueError, match=r"--pretrained_name_or_path=\S+ holds no config.json"):
+        robot.connect()
+    assert not robot.is_connected
+
+
 def test_a_policy_that_reads_a_camera_the_robot_does_not_send_is_refused_at_connect(
         tmp_path, monkeypatch):
     """`lerobot-rollout --policy.path=policy/pick_place_diffusion --robot.camera_names='[front]'`

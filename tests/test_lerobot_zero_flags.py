@@ -77,6 +77,20 @@ def test_lerobot_eval_runs_without_discovery_flags(tmp_path):
     assert bad.stderr.strip().splitlines()[-1].startswith(
         f"lerobot-eval: error: --env.type={ENV_TYPE}: unknown task 'no_such_task'; expected")
 
+    # a training run's folder for --policy.path: lerobot's traceback ("config.json not found
+    # in ...") became one line naming the policy inside it
+    run_dir = tmp_path / "run"
+    shutil.copytree(ckpt, run_dir / "pretrained_model")
+    bad = subprocess.run([*(w for w in cmd if not w.startswith("--policy.path=")),
+                          f"--policy.path={run_dir}"], capture_output=True, text=True,
+                         timeout=600, env=env)
+    assert bad.returncode != 0 and "Traceback" not in bad.stderr, bad.stderr[-3000:]
+    assert bad.stderr.strip().splitlines()[-1] == (
+        f"lerobot-eval: error: --policy.path={run_dir} holds no config.json, so lerobot cannot "
+        f"load a policy from it; did you mean --policy.path={run_dir / 'pretrained_model'}? "
+        "(so101-sim train keeps its final policy in RUN/pretrained_model, lerobot-train in "
+        "checkpoints/last/pretrained_model)")
+
 
 def _local_hub_repo(cache: Path, repo_id: str, files: dict[str, Path]) -> None:
     """A Hub repo as huggingface_hub caches it (what `hf download` leaves), so lerobot's loader

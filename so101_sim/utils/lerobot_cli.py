@@ -12,12 +12,15 @@ commands, keeps Python's own report. Imports nothing heavy.
 from __future__ import annotations
 
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from types import TracebackType
 
 TAG = "so101_sim_flags"  # attribute set on a tagged exception: the flag group, e.g. --env.type=X
+#: What the plugins add to turn an untagged exception of lerobot's own into the one line that
+#: says what to do (None: not theirs to explain).
+EXPLAINERS: list[Callable[[BaseException], str | None]] = []
 
 
 @contextmanager
@@ -66,10 +69,14 @@ def one_line_errors(argv0: str | None = None) -> bool:
     def hook(kind: type[BaseException], exc: BaseException,
              tb: TracebackType | None) -> None:
         ours = tagged(exc)
-        if ours is None:
+        if ours is not None:
+            print(f"{prog}: error: {getattr(ours, TAG)}: {ours}", file=sys.stderr)
+            return
+        line = next((said for explain in EXPLAINERS if (said := explain(exc))), None)
+        if line is None:
             previous(kind, exc, tb)
             return
-        print(f"{prog}: error: {getattr(ours, TAG)}: {ours}", file=sys.stderr)
+        print(f"{prog}: error: {line}", file=sys.stderr)
 
     setattr(hook, TAG, True)
     sys.excepthook = hook

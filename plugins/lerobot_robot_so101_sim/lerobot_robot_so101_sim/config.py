@@ -14,10 +14,10 @@ from pathlib import Path
 from lerobot.robots.config import RobotConfig
 from lerobot.teleoperators.config import TeleoperatorConfig
 
-from so101_sim.policy_frames import policy_frame_size
+from so101_sim.policy_frames import missing_config_line, policy_frame_size
 from so101_sim.tasks import load_task
 from so101_sim.tasks.spec import ALL_CAMERAS
-from so101_sim.utils.lerobot_cli import config_errors, one_line_errors
+from so101_sim.utils.lerobot_cli import EXPLAINERS, config_errors, one_line_errors
 
 ROBOT_TYPE = "so101_sim"
 TELEOP_TYPE = "so101_sim_expert"
@@ -25,6 +25,8 @@ EPISODE_END = ("auto", "reset", "hold")
 _SIZE_RANGE = (16, 2048)
 DEFAULT_IMAGE = (480, 640)
 one_line_errors()  # a lerobot command given a bad --robot.* value says so in one line
+if missing_config_line not in EXPLAINERS:  # and a --policy.path that is a run folder
+    EXPLAINERS.append(missing_config_line)
 
 
 @RobotConfig.register_subclass(ROBOT_TYPE)
