@@ -185,9 +185,11 @@ def folder_problem(argv: Sequence[str]) -> InputProblem | None:
         if folder is None or not folder.is_dir() or (folder / "config.json").is_file():
             continue
         near = nearby_policies(folder)
-        what = (f"did you mean {flag}={near[0]}? (so101-sim train keeps its final policy in "
-                "RUN/pretrained_model, lerobot-train in checkpoints/last/pretrained_model)"
-                if near else other_kind(folder).removesuffix("; ") or
+        why = (" (so101-sim train keeps its final policy in RUN/pretrained_model, lerobot-train "
+               "in checkpoints/last/pretrained_model)"
+               if near and near[0].name == "pretrained_model" else "")
+        what = (f"did you mean {' or '.join(f'{flag}={p}' for p in near)}?{why}" if near else
+                other_kind(folder).removesuffix("; ") or
                 "expected a policy checkpoint folder (config.json, model.safetensors)")
         return InputProblem(f"{flag}={value} holds no config.json, so lerobot cannot load a "
                             f"policy from it; {what}", True)

@@ -688,6 +688,27 @@ def test_a_lerobot_train_run_folder_as_policy_names_its_last_checkpoint(
     assert "is not a so101-sim checkpoint" in err and "did you mean" not in err
 
 
+def test_a_folder_of_policies_given_as_policy_names_them(tmp_path: Path, capsys,
+                                                        monkeypatch) -> None:
+    """`--policy policy` (the folder the shipped ones live in) only said "has no config.json";
+    so did lerobot's CLIs, with a traceback. Both now name the policies in it."""
+    from so101_sim.cli import main
+    from so101_sim.policy_frames import folder_problem
+
+    monkeypatch.chdir(tmp_path)
+    for name in ("b_policy", "a_policy"):
+        (tmp_path / "policies" / name).mkdir(parents=True)
+        (tmp_path / "policies" / name / "config.json").write_text("{}")
+    (tmp_path / "policies" / "presets").mkdir()  # not a policy: not named
+    assert main(["eval", "--policy", "policies", "--episodes", "1"]) == 2
+    assert ("policy checkpoint policies has no config.json; did you mean --policy "
+            "policies/a_policy or --policy policies/b_policy? expected") in capsys.readouterr().err
+    problem = folder_problem(["lerobot-eval", "--policy.path=policies"])
+    assert problem is not None and problem.text == (
+        "--policy.path=policies holds no config.json, so lerobot cannot load a policy from it; "
+        "did you mean --policy.path=policies/a_policy or --policy.path=policies/b_policy?")
+
+
 def test_a_dataset_or_an_evaluation_given_as_policy_says_what_it_is(tmp_path: Path, capsys,
                                                                    monkeypatch) -> None:
     """`eval --policy DATA` or `--policy EVAL` (an eval's --out) only said "has no

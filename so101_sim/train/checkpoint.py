@@ -38,10 +38,13 @@ def nearby_policies(path: Path) -> list[Path]:
     run or a step folder given), or, for a path that does not exist, the final and the latest
     checkpointed policy of the nearest training run above it (`train` keeps
     ``checkpoints/step_NNNNNNN``, with no ``last`` link as lerobot-train makes). A
-    lerobot-train run folder given names its ``checkpoints/last/pretrained_model``."""
+    lerobot-train run folder given names its ``checkpoints/last/pretrained_model``; a folder
+    of policies (``policy/``), the policies in it."""
     for inside in ("pretrained_model", "checkpoints/last/pretrained_model"):
         if (path / inside / "config.json").is_file():
             return [path / inside]
+    if path.is_dir():
+        return sorted(p for p in path.iterdir() if (p / "config.json").is_file())[:3]
     if path.exists():
         return []
     existing = next((p for p in path.parents if p.is_dir()), None)
