@@ -1,6 +1,7 @@
 """What to say when the policy on a lerobot command line takes inputs the sim does not send:
 frames of another size (one warning), or a camera or the environment state the sim does not
-send (an error for the policy types that would stop at their first step, else a warning).
+send (an error for the policy types that would stop at their first step, else a warning); and
+when it is no policy folder, or a type lerobot's async server cannot run (an error).
 
 lerobot-eval and lerobot-rollout with ``--policy.path`` (0.6.1's lerobot-record takes none)
 and the async robot client build the policy apart from the env or robot, and neither lerobot
@@ -177,8 +178,9 @@ def _eval_fix(reads: PolicyReads, missing: Sequence[str]) -> str:
 
 def folder_problem(argv: Sequence[str]) -> InputProblem | None:
     """A local folder given as the policy that holds no config.json: a training run (its
-    policy inside it), a dataset or an evaluation. lerobot stops on it with a traceback
-    ("config.json not found in ...") once the envs or the robot are up; None for the rest."""
+    policy inside it), a folder of policies, a dataset or an evaluation. lerobot-eval and
+    lerobot-rollout stop on it with a traceback while they parse the command line ("config.json
+    not found in ..."); the robot client's server fails to load it. None for the rest."""
     for flag in POLICY_FLAGS:
         value = flag_value(argv, flag)
         folder = Path(value).expanduser() if value else None
@@ -199,10 +201,12 @@ def folder_problem(argv: Sequence[str]) -> InputProblem | None:
 def missing_config_line(exc: BaseException) -> str | None:
     """For lerobot's ``FileNotFoundError: config.json not found in FOLDER``, raised while a
     command line is parsed (before any env or robot exists): ``folder_problem``'s line."""
-    while exc is not None:
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
         if isinstance(exc, FileNotFoundError) and "config.json" in str(exc):
             problem = folder_problem(sys.argv)
             return problem.text if problem is not None else None
+        seen.add(id(exc))
         exc = exc.__cause__ or exc.__context__
     return None
 
