@@ -36,3 +36,13 @@ def test_a_config_with_an_unknown_field_names_it(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"config.json \(policy type 'diffusion'\) could not be "
                                          r"parsed by lerobot: .*`horizn` are not valid"):
         load_config(model)
+
+
+def test_loading_the_weights_prints_nothing_of_lerobots(capsys) -> None:
+    """lerobot's from_pretrained prints "Loading weights from local directory" on every load,
+    a stray line among eval's own; load_weights keeps it out and lets anything else through."""
+    from so101_sim.train.checkpoint import load_weights
+
+    policy = load_weights(load_config(SHIPPED), SHIPPED)
+    assert policy.config.type == "diffusion"
+    assert "Loading weights" not in capsys.readouterr().out

@@ -9,6 +9,8 @@ recorded and used). One loader for all readers (the harness, ``explain``, ``curv
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import warnings
 from pathlib import Path
@@ -144,14 +146,20 @@ def load_weights(cfg: Any, path: Path) -> Any:
         policy_cls = get_policy_class(cfg.type)
     except Exception as exc:
         raise ValueError(f"{path}: lerobot has no policy type {cfg.type!r} ({exc})") from exc
+    said = io.StringIO()  # lerobot prints "Loading weights from local directory" on each load
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), contextlib.redirect_stdout(said):
             warnings.simplefilter("ignore")
             policy = policy_cls.from_pretrained(path, config=cfg, strict=True)
     except Exception as exc:
         raise RuntimeError(f"{path / 'model.safetensors'} could not be loaded into a "
                            f"{cfg.type!r} policy built from config.json: "
                            f"{type(exc).__name__}: {str(exc)[:300]}") from exc
+    finally:  # anything else it printed still shows
+        rest = [ln for ln in said.getvalue().splitlines()
+                if ln and ln != "Loading weights from local directory"]
+        if rest:
+            print("\n".join(rest))
     policy.eval()
     policy.reset()
     return policy
