@@ -35,11 +35,12 @@ from so101_sim.policy_frames import (
     env_input_problem,
     missing_config_line,
     policy_frame_size,
+    refuse_or_warn,
     size_warning,
 )
 from so101_sim.sim import OBS_TYPES, env_state_size
 from so101_sim.tasks import ALL_CAMERAS, load_task
-from so101_sim.utils.lerobot_cli import EXPLAINERS, config_errors, one_line_errors
+from so101_sim.utils.lerobot_cli import add_explainer, config_errors, one_line_errors
 from so101_sim.utils.units import FEATURE_NAMES
 from so101_sim.workers.local import ensure_fork_server
 
@@ -52,8 +53,7 @@ ENV_TYPE = "so101_pick_place"
 DEFAULT_FRAME = (480, 640)  # the recorded size; a policy on the command line may set another
 ACTION_DIM = len(FEATURE_NAMES)
 one_line_errors()  # a lerobot command given a bad --env.* value says so in one line
-if missing_config_line not in EXPLAINERS:  # and a --policy.path that is a run folder
-    EXPLAINERS.append(missing_config_line)
+add_explainer(missing_config_line)  # and a --policy.path that is a run folder
 
 
 @EnvConfig.register_subclass(ENV_TYPE)
@@ -194,14 +194,12 @@ class SO101PickPlaceEnvConfig(EnvConfig):
     def _check_inputs(self, cameras: list[str]) -> None:
         """Refuse (or warn, for a policy type that does without) a policy on the command line
         that reads an input these envs do not send, before any env is built."""
-        problem = env_input_problem(sys.argv, cameras, self.obs_type,
-                                    load_task(self.task).cameras)
-        if problem is None:
-            return
-        if problem.fatal:
-            with config_errors(f"--env.type={ENV_TYPE}"):  # one line, as for a bad flag
-                raise ValueError(problem.text)
-        logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE, problem.text)
+        def warn(text: str) -> None:
+            logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE, text)
+
+        refuse_or_warn(env_input_problem(sys.argv, cameras, self.obs_type,
+                                         load_task(self.task).cameras),
+                       f"--env.type={ENV_TYPE}", warn)
 
 
 class LeRobotRolloutAdapter(gym.Wrapper):

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +28,7 @@ from so101_sim.train.checkpoint import (
     other_kind,
     train_image_size,
 )
+from so101_sim.utils.lerobot_cli import causes, config_errors
 
 POLICY_FLAGS = ("--policy.path", "--pretrained_name_or_path")  # lerobot CLIs, robot_client
 # lerobot 0.6 policy types whose forward indexes every image input they were trained on, so a
@@ -169,6 +170,18 @@ class PolicyReads:
                             f"{fate}; {fix}", self.fatal)
 
 
+def refuse_or_warn(problem: InputProblem | None, flags: str,
+                   warn: Callable[[str], None]) -> None:
+    """A fatal `problem` raised as the one-line error of `flags` (e.g. --env.type=X); any other
+    handed to `warn`."""
+    if problem is None:
+        return
+    if problem.fatal:
+        with config_errors(flags):
+            raise ValueError(problem.text)
+    warn(problem.text)
+
+
 def _eval_fix(reads: PolicyReads, missing: Sequence[str]) -> str:
     other = [cam for cam in missing if cam not in ALL_CAMERAS]
     return (f"`so101-sim eval --policy {reads.policy}` renders any of {', '.join(ALL_CAMERAS)}"
@@ -201,14 +214,11 @@ def folder_problem(argv: Sequence[str]) -> InputProblem | None:
 def missing_config_line(exc: BaseException) -> str | None:
     """For lerobot's ``FileNotFoundError: config.json not found in FOLDER``, raised while a
     command line is parsed (before any env or robot exists): ``folder_problem``'s line."""
-    seen: set[int] = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, FileNotFoundError) and "config.json" in str(exc):
-            problem = folder_problem(sys.argv)
-            return problem.text if problem is not None else None
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return None
+    if not any(isinstance(e, FileNotFoundError) and "config.json" in str(e)
+               for e in causes(exc)):
+        return None
+    problem = folder_problem(sys.argv)
+    return problem.text if problem is not None else None
 
 
 def env_input_problem(argv: Sequence[str], cameras: Sequence[str], obs_type: str,

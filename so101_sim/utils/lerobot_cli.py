@@ -34,15 +34,24 @@ def config_errors(flags: str,
         raise
 
 
-def tagged(exc: BaseException | None) -> BaseException | None:
-    """The first tagged exception in `exc`'s chain of causes, or None."""
+def causes(exc: BaseException | None) -> Iterator[BaseException]:
+    """`exc`, then what it was raised from or during, in turn (a cycle ends the walk)."""
     seen: set[int] = set()
     while exc is not None and id(exc) not in seen:
-        if getattr(exc, TAG, None):
-            return exc
+        yield exc
         seen.add(id(exc))
         exc = exc.__cause__ or exc.__context__
-    return None
+
+
+def tagged(exc: BaseException | None) -> BaseException | None:
+    """The first tagged exception in `exc`'s chain of causes, or None."""
+    return next((e for e in causes(exc) if getattr(e, TAG, None)), None)
+
+
+def add_explainer(explain: Callable[[BaseException], str | None]) -> None:
+    """Add `explain` to ``EXPLAINERS`` once (each plugin that needs it asks)."""
+    if explain not in EXPLAINERS:
+        EXPLAINERS.append(explain)
 
 
 def command_name(argv0: str) -> str | None:

@@ -17,7 +17,8 @@ from lerobot.teleoperators.config import TeleoperatorConfig
 from so101_sim.policy_frames import missing_config_line, policy_frame_size
 from so101_sim.tasks import load_task
 from so101_sim.tasks.spec import ALL_CAMERAS
-from so101_sim.utils.lerobot_cli import EXPLAINERS, config_errors, one_line_errors
+from so101_sim.train.checkpoint import train_image_size
+from so101_sim.utils.lerobot_cli import add_explainer, config_errors, one_line_errors
 
 ROBOT_TYPE = "so101_sim"
 TELEOP_TYPE = "so101_sim_expert"
@@ -25,8 +26,7 @@ EPISODE_END = ("auto", "reset", "hold")
 _SIZE_RANGE = (16, 2048)
 DEFAULT_IMAGE = (480, 640)
 one_line_errors()  # a lerobot command given a bad --robot.* value says so in one line
-if missing_config_line not in EXPLAINERS:  # and a --policy.path that is a run folder
-    EXPLAINERS.append(missing_config_line)
+add_explainer(missing_config_line)  # and a --policy.path that is a run folder
 
 
 @RobotConfig.register_subclass(ROBOT_TYPE)
@@ -110,16 +110,14 @@ class SO101SimConfig(RobotConfig):
     def _size_for_policy(self, cameras: tuple[str, ...]) -> None:
         """The frames the command line's policy takes: lerobot hands it the robot's as they
         are, so the default 480 x 640 would be the wrong picture for a 60 x 80 policy."""
-        from so101_sim.train.checkpoint import train_image_size
-
         found = policy_frame_size(sys.argv, cameras, "--robot")
         if found is None or found[0] == DEFAULT_IMAGE:
             return
         (self.image_height, self.image_width), self.sized_by = found
         try:
             render = train_image_size(found[1])
-        except (OSError, ValueError, KeyError, TypeError, AttributeError):
-            render = None  # no so101-sim training record: render at the image size
+        except (OSError, ValueError):
+            render = None  # an unreadable training record: render at the image size
         if render is not None and render != found[0]:
             self.render_height, self.render_width = render
 

@@ -31,9 +31,8 @@ from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnected
 from lerobot_robot_so101_sim import registry
 from lerobot_robot_so101_sim.config import ROBOT_TYPE, SO101SimConfig
 from lerobot_robot_so101_sim.dataset_events import unwatch_datasets, watch_datasets
-from so101_sim.policy_frames import robot_input_problem, size_warning
+from so101_sim.policy_frames import refuse_or_warn, robot_input_problem, size_warning
 from so101_sim.tasks import load_task
-from so101_sim.utils.lerobot_cli import config_errors
 from so101_sim.utils.units import FEATURE_NAMES
 
 logger = logging.getLogger(__name__)
@@ -141,13 +140,11 @@ class SO101Sim(Robot):
     def _check_inputs(self) -> None:
         """Refuse (or warn, for a policy type that does without) a policy on the command line
         that reads an input this robot does not send, before the scene is built."""
-        problem = robot_input_problem(sys.argv, self.camera_names)
-        if problem is None:
-            return
-        if problem.fatal:
-            with config_errors(f"--robot.type={ROBOT_TYPE}"):  # one line, as for a bad flag
-                raise ValueError(problem.text)
-        logger.warning("%s: %s", self, problem.text)
+        def warn(text: str) -> None:
+            logger.warning("%s: %s", self, text)
+
+        refuse_or_warn(robot_input_problem(sys.argv, self.camera_names),
+                       f"--robot.type={ROBOT_TYPE}", warn)
 
     def calibrate(self) -> None:
         """Nothing to calibrate: the sim's joints are LeRobot's units by construction."""
