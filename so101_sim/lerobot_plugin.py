@@ -9,8 +9,10 @@ below with draccus before the command line is parsed; without it, add
         --policy.path=outputs/train/.../pretrained_model --eval.n_episodes=50 --eval.batch_size=1
 
 ``--env.task`` is any task ``so101_sim.tasks.spec.load_task`` accepts (a name in envs/ or a TOML
-path); ``fps`` and ``episode_length`` default to the task's, the frame size to the camera input
-size of a local ``--policy.path`` (else 480x640; ``--env.image_height/width`` choose).
+path); ``fps`` and ``episode_length`` default to the task's, the cameras and frame size to the
+camera inputs of a local ``--policy.path`` (else the task's cameras at 480x640;
+``--env.cameras`` and ``--env.image_height/width`` choose). Under lerobot-train, the task,
+cameras and frame size default to the dataset's (``so101_sim.dataset_reads``).
 
 In Python, ``import so101_sim.lerobot_plugin`` and then
 ``lerobot.envs.factory.make_env(SO101PickPlaceEnvConfig(...), n_envs=1)``.
@@ -28,17 +30,27 @@ import gymnasium as gym
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 from lerobot.envs.utils import NEW_ROLLOUT_OPTION
-from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
+from lerobot.utils.constants import (
+    ACTION,
+    HF_LEROBOT_HOME,
+    OBS_ENV_STATE,
+    OBS_IMAGES,
+    OBS_STATE,
+)
 
 from so101_sim import ENV_ID
+from so101_sim.dataset_reads import DatasetReads
 from so101_sim.policy_frames import (
+    PolicyReads,
     env_input_problem,
+    flag_value,
     missing_config_line,
     policy_frame_size,
     refuse_or_warn,
     size_warning,
 )
 from so101_sim.sim import OBS_TYPES, env_state_size
+from so101_sim.sim.env_args import check_cameras
 from so101_sim.tasks import ALL_CAMERAS, load_task
 from so101_sim.utils.lerobot_cli import add_explainer, config_errors, one_line_errors
 from so101_sim.utils.units import FEATURE_NAMES
@@ -73,6 +85,9 @@ class SO101PickPlaceEnvConfig(EnvConfig):
     obs_type: str = "pixels_agent_pos"
     image_height: int = DEFAULT_FRAME[0]  # default: the command line's policy's input size
     image_width: int = DEFAULT_FRAME[1]
+    # None: the cameras the command line's policy folder (or lerobot-train's dataset) reads
+    # where the sim has them all, else the task's; e.g. --env.cameras='[front,side,wrist]'
+    cameras: list[str] | None = None
     render_mode: str | None = "rgb_array"  # lerobot-eval renders videos through env.render()
     features: dict[str, PolicyFeature] = field(default_factory=dict)
     features_map: dict[str, str] = field(
@@ -103,14 +118,31 @@ class SO101PickPlaceEnvConfig(EnvConfig):
                 raise ValueError(f"{name}={getattr(self, name)} is invalid; expected 16..2048 "
                                  "pixels, e.g. --env.image_height=60 --env.image_width=80 (the "
                                  "shipped policy's input)")
+        if self.cameras is not None:
+            try:
+                self.cameras = list(check_cameras(self.cameras))
+            except ValueError:
+                raise ValueError(f"cameras={self.cameras!r} is invalid; expected distinct names "
+                                 f"from {', '.join(ALL_CAMERAS)}, e.g. "
+                                 "--env.cameras='[front,side,wrist]'") from None
+        data = DatasetReads.of(sys.argv, HF_LEROBOT_HOME)  # lerobot-train's, if local
+        taken = self._take_task(data)
         spec = load_task(self.task)
-        self._adopted_from = None
-        if self.obs_type != "state" and (self.image_height, self.image_width) == DEFAULT_FRAME:
-            # lerobot-eval hands the policy the frames as they are: left at the default, they
-            # would be the wrong picture for any policy trained on another size
-            found = policy_frame_size(sys.argv, spec.cameras)
-            if found is not None and found[0] != DEFAULT_FRAME:
-                (self.image_height, self.image_width), self._adopted_from = found
+        self._adopted_from = self._cameras_from = None
+        if self.obs_type != "state":
+            # lerobot-eval and lerobot-train's evaluation hand the policy these frames as they
+            # are: left at the defaults, they would be the wrong picture (or a missing camera)
+            # for any policy trained on other ones
+            taken += self._take_cameras(spec.cameras, data)
+            if (self.image_height, self.image_width) == DEFAULT_FRAME:
+                found = policy_frame_size(sys.argv, self.cameras or spec.cameras)
+                size = found[0] if found else data.frame_size(sys.argv) if data else None
+                if size is not None and size != DEFAULT_FRAME:
+                    self.image_height, self.image_width = size
+                    self._adopted_from = found[1] if found else None
+                    taken += [] if found else [f"{size[0]}x{size[1]} frames"]
+        if data is not None:
+            self._tell_dataset(data, taken, spec)
         self.fps = spec.fps if self.fps is None else self.fps
         self.episode_length = (spec.max_steps if self.episode_length is None
                                else self.episode_length)
@@ -123,6 +155,49 @@ class SO101PickPlaceEnvConfig(EnvConfig):
                              f"expected 1..{spec.max_steps} (raise max_steps in the task file)")
         self.features = self._derived_features()
 
+    def _take_task(self, data: DatasetReads | None) -> list[str]:
+        """The dataset's task where the line names none (and that task loads)."""
+        if (data is None or data.task is None or data.task == self.task
+                or flag_value(sys.argv, "--env.task") is not None):
+            return []
+        try:
+            load_task(data.task)
+        except (OSError, ValueError):
+            return []  # a task file that moved: the warning says which task the demos were
+        self.task = data.task
+        return [f"task {data.task}"]
+
+    def _take_cameras(self, task_cameras: tuple[str, ...], data: DatasetReads | None
+                      ) -> list[str]:
+        """Where no cameras are given: those the line's policy folder (else dataset) reads,
+        when the sim has them all and they are not the task's."""
+        if self.cameras is not None:
+            return []
+        reads = PolicyReads.of(sys.argv)
+        wanted = reads.cameras if reads else tuple(data.sizes) if data else ()
+        if not wanted or wanted == task_cameras or not set(wanted) <= set(ALL_CAMERAS):
+            return []
+        self.cameras = list(wanted)
+        if reads:  # said when the envs are built, as the frame size is
+            self._cameras_from = reads.policy
+            return []
+        return [f"cameras {', '.join(wanted)}"]
+
+    def _tell_dataset(self, data: DatasetReads, taken: list[str], spec: Any) -> None:
+        """One line for what came from lerobot-train's dataset, one per thing that differs
+        from it (an error for a camera a diffusion or ACT policy would miss): said while the
+        command line is parsed, before any training."""
+        if taken:
+            _say(logging.INFO, f"--env.type={ENV_TYPE}: {', '.join(taken)}, as in dataset "
+                 f"{data.root}, so that the policy trained on it is evaluated on what it learns "
+                 "from (--env.task, --env.cameras, --env.image_height and --env.image_width "
+                 "choose others)")
+        cameras = [] if self.obs_type == "state" else self.cameras or list(spec.cameras)
+        for problem in data.mismatches(sys.argv, self.task, cameras,
+                                       (self.image_height, self.image_width)):
+            refuse_or_warn(problem, f"--env.type={ENV_TYPE}",
+                           lambda text: _say(logging.WARNING, f"--env.type={ENV_TYPE}: {text}"))
+
     def _derived_features(self) -> dict[str, PolicyFeature]:
         """Raw env keys (channel-last images, as the env returns them) -> PolicyFeature; the
         task file decides the cameras and the size of environment_state."""
@@ -133,7 +208,7 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         }
         if self.obs_type != "state":
             shape = (self.image_height, self.image_width, 3)
-            for cam in spec.cameras:
+            for cam in self.cameras or spec.cameras:
                 feats[f"pixels/{cam}"] = PolicyFeature(type=FeatureType.VISUAL, shape=shape)
         if self.obs_type != "pixels_agent_pos":
             feats["environment_state"] = PolicyFeature(
@@ -160,6 +235,7 @@ class SO101PickPlaceEnvConfig(EnvConfig):
             "image_size": (self.image_height, self.image_width),
             "render_mode": self.render_mode,
             "max_episode_steps": self.episode_length,
+            **({"cameras": tuple(self.cameras)} if self.cameras else {}),
         }
 
     def create_envs(
@@ -176,6 +252,10 @@ class SO101PickPlaceEnvConfig(EnvConfig):
                 "--env.type=%s: sending %dx%d frames, the camera input size of %s (lerobot-eval "
                 "does not resize them; --env.image_height and --env.image_width choose another)",
                 ENV_TYPE, self.image_height, self.image_width, self._adopted_from)
+        if getattr(self, "_cameras_from", None) is not None:
+            logging.getLogger(__name__).info(
+                "--env.type=%s: sending cameras %s, those %s reads (--env.cameras chooses "
+                "others)", ENV_TYPE, ", ".join(cameras), self._cameras_from)
         warning = size_warning(sys.argv, (self.image_height, self.image_width), cameras, "--env")
         if warning:  # lerobot-eval hands the policy these frames as they are
             logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE, warning)
@@ -197,8 +277,7 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         def warn(text: str) -> None:
             logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE, text)
 
-        refuse_or_warn(env_input_problem(sys.argv, cameras, self.obs_type,
-                                         load_task(self.task).cameras),
+        refuse_or_warn(env_input_problem(sys.argv, cameras, self.obs_type),
                        f"--env.type={ENV_TYPE}", warn)
 
 
@@ -221,6 +300,16 @@ class LeRobotRolloutAdapter(gym.Wrapper):
     ) -> tuple[Any, dict[str, Any]]:
         kept = {k: v for k, v in (options or {}).items() if k != NEW_ROLLOUT_OPTION}
         return self.env.reset(seed=seed, options=kept or None)
+
+
+def _say(level: int, text: str) -> None:
+    """Log `text`; straight to stderr while logging is not set up for it (lerobot-train parses
+    its command line before it configures logging, which would drop an INFO line)."""
+    logger = logging.getLogger(__name__)
+    if logger.hasHandlers() and logger.isEnabledFor(logging.INFO):  # lerobot's init_logging
+        logger.log(level, text)
+    else:
+        print(f"{logging.getLevelName(level)} {text}", file=sys.stderr)
 
 
 def _make_wrapped_env(gym_id: str, disable_env_checker: bool,

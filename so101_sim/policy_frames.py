@@ -66,16 +66,21 @@ def policy_path(argv: Sequence[str]) -> tuple[Path, str] | None:
     return None
 
 
+def sets_frame_size(argv: Sequence[str], group: str = "--env") -> bool:
+    """Whether a lerobot command line chooses the frame size itself: ``{group}.image_height``,
+    ``image_width``, ``render_height`` or ``render_width``, or a ``--config_path`` that could."""
+    chosen = ("--config_path", *(f"{group}.{name}" for name in (
+        "image_height", "image_width", "render_height", "render_width")))
+    return any(word.split("=", 1)[0] in chosen for word in argv)
+
+
 def policy_frame_size(argv: Sequence[str], cameras: Sequence[str],
                       group: str = "--env") -> tuple[tuple[int, int], Path] | None:
     """The one size of the camera inputs of the local policy a lerobot command line names, and
-    its folder, where that line sets no frame size itself (no ``{group}.image_height``,
-    ``image_width``, ``render_height`` or ``render_width``, nor a ``--config_path`` that
-    could): the frame size that env or robot should send. None where the line chooses, names
+    its folder, where that line sets no frame size itself (``sets_frame_size``): the frame
+    size that env or robot should send. None where the line chooses, names
     no readable policy, or the policy's cameras differ in size."""
-    chosen = ("--config_path", *(f"{group}.{name}" for name in (
-        "image_height", "image_width", "render_height", "render_width")))
-    if any(word.split("=", 1)[0] in chosen for word in argv):
+    if sets_frame_size(argv, group):
         return None
     found = policy_path(argv)
     if found is None:
@@ -221,19 +226,20 @@ def missing_config_line(exc: BaseException) -> str | None:
     return problem.text if problem is not None else None
 
 
-def env_input_problem(argv: Sequence[str], cameras: Sequence[str], obs_type: str,
-                      task_cameras: Sequence[str]) -> InputProblem | None:
-    """What lerobot-eval's envs (`--env.obs_type`, the task's `cameras`) fail to send the local
-    policy on `argv`, or None."""
+def env_input_problem(argv: Sequence[str], cameras: Sequence[str],
+                      obs_type: str) -> InputProblem | None:
+    """What lerobot-eval's envs (`--env.obs_type`, `cameras`) fail to send the local policy on
+    `argv`, or None."""
     reads = PolicyReads.of(argv)
     if reads is None:
         return None
     sent = ", ".join(cameras) or "no camera frames"
     if missing := [cam for cam in reads.cameras if cam not in cameras]:
-        fix = (f"drop --env.obs_type={obs_type} (the default, pixels_agent_pos, sends "
-               f"{', '.join(task_cameras)})"
-               if obs_type == "state" and set(missing) <= set(task_cameras)
-               else _eval_fix(reads, missing))
+        # with neither flag, the env sends the cameras the policy reads where the sim has them
+        fix = (_eval_fix(reads, missing) if not set(reads.cameras) <= set(ALL_CAMERAS) else
+               f"drop --env.obs_type={obs_type} (the default, pixels_agent_pos, sends "
+               f"{', '.join(reads.cameras)})" if obs_type == "state" else
+               "drop --env.cameras (the env then sends the cameras the policy reads)")
         return reads.problem(missing, "env", sent, fix)
     if reads.env_state and obs_type == "pixels_agent_pos":
         return reads.problem([ENV_STATE], "env", f"{sent} and the joints",

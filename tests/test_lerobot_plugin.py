@@ -118,6 +118,14 @@ def test_a_lerobot_command_reports_a_bad_env_value_in_one_line(monkeypatch, caps
     sys.excepthook(RuntimeError, other, None)
     assert reported == [other] and capsys.readouterr().err == ""  # the hook that was there
 
+    # lerobot-train's parser catches draccus's error for its optional `env` and prints only
+    # "Couldn't instantiate class SO101PickPlaceEnvConfig"; the line is said all the same
+    with pytest.raises(draccus.utils.DecodingError):  # lerobot prints it and exits
+        draccus.parse(Command, args=[f"--env.type={ENV_TYPE}", "--env.obs_type=pixels"])
+    assert capsys.readouterr().err.splitlines() == [
+        f"lerobot-eval: error: --env.type={ENV_TYPE}: obs_type='pixels' is invalid; expected "
+        "one of ('pixels_agent_pos', 'pixels_agent_pos_env_state', 'state')"]
+
 
 def test_make_env_reset_and_preprocess(built) -> None:
     cfg, envs = built
@@ -309,15 +317,30 @@ def test_lerobot_eval_refuses_a_policy_that_reads_a_camera_the_env_does_not_send
                        r"env sends front, side: .*--camera-map top=front$"):
         make_env(pixels, n_envs=1, use_async_envs=False)
 
-    # a policy type that pads a missing camera (smolvla, pi0) runs, with one warning
+    # cameras the sim has: with no --env.cameras, the env sends those the policy reads
     vla = _policy_config(tmp_path / "vla", "smolvla", ["front", "wrist"])
     monkeypatch.setattr(sys, "argv", ["lerobot-eval", f"--policy.path={vla}"])
+    size = {"image_height": 60, "image_width": 80, "episode_length": EPISODE_LENGTH}
+    with caplog.at_level("INFO"):
+        envs = make_env(make_env_config(ENV_TYPE, **size), n_envs=1, use_async_envs=False)
+    try:
+        obs, _ = _vec(envs).reset(seed=[100000])
+        assert sorted(obs["pixels"]) == ["front", "wrist"]
+    finally:
+        close_envs(envs)
+    assert [r.getMessage() for r in caplog.records if "cameras" in r.getMessage()] == [
+        f"--env.type={ENV_TYPE}: sending cameras front, wrist, those {vla} reads (--env.cameras "
+        "chooses others)"]
+    # given cameras without one of them: a policy type that pads a missing camera (smolvla,
+    # pi0) runs, with one warning
+    caplog.clear()
     with caplog.at_level("WARNING"):
-        close_envs(make_env(pixels, n_envs=1, use_async_envs=False))
+        close_envs(make_env(make_env_config(ENV_TYPE, cameras=["front", "side"], **size),
+                            n_envs=1, use_async_envs=False))
     assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == [
         f"--env.type={ENV_TYPE}: {vla} needs camera wrist (it reads front, wrist), and this env "
-        "sends front, side: lerobot would feed it an empty image for each; `so101-sim eval "
-        f"--policy {vla}` renders any of front, side, wrist"]
+        "sends front, side: lerobot would feed it an empty image for each; drop --env.cameras "
+        "(the env then sends the cameras the policy reads)"]
 
 
 def test_lerobot_eval_refuses_a_policy_that_reads_the_env_state_without_its_obs_type(

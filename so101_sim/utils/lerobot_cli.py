@@ -18,6 +18,7 @@ from pathlib import Path
 from types import TracebackType
 
 TAG = "so101_sim_flags"  # attribute set on a tagged exception: the flag group, e.g. --env.type=X
+REPORTED = "so101_sim_reported"  # set on a tagged exception once its line is printed
 #: What the plugins add to turn an untagged exception of lerobot's own into the one line that
 #: says what to do (None: not theirs to explain).
 EXPLAINERS: list[Callable[[BaseException], str | None]] = []
@@ -26,11 +27,20 @@ EXPLAINERS: list[Callable[[BaseException], str | None]] = []
 @contextmanager
 def config_errors(flags: str,
                   kinds: tuple[type[Exception], ...] = (ValueError,)) -> Iterator[None]:
-    """Tag an error of `kinds` raised inside with `flags` (how the user named the config)."""
+    """Tag an error of `kinds` raised inside with `flags` (how the user named the config).
+
+    Under a lerobot command (``one_line_errors`` installed) the line is also printed here:
+    lerobot's parser catches draccus's error for an optional config (lerobot-train's ``env``)
+    and prints only "Couldn't instantiate class ..." before it exits, so the hook never sees
+    it. The hook then prints nothing more for it."""
     try:
         yield
     except kinds as exc:
         setattr(exc, TAG, flags)
+        prog = getattr(sys.excepthook, TAG, None)
+        if isinstance(prog, str) and not getattr(exc, REPORTED, False):
+            print(f"{prog}: error: {flags}: {exc}", file=sys.stderr)
+            setattr(exc, REPORTED, True)
         raise
 
 
@@ -79,7 +89,8 @@ def one_line_errors(argv0: str | None = None) -> bool:
              tb: TracebackType | None) -> None:
         ours = tagged(exc)
         if ours is not None:
-            print(f"{prog}: error: {getattr(ours, TAG)}: {ours}", file=sys.stderr)
+            if not getattr(ours, REPORTED, False):
+                print(f"{prog}: error: {getattr(ours, TAG)}: {ours}", file=sys.stderr)
             return
         line = next((said for explain in EXPLAINERS if (said := explain(exc))), None)
         if line is None:
@@ -87,6 +98,6 @@ def one_line_errors(argv0: str | None = None) -> bool:
             return
         print(f"{prog}: error: {line}", file=sys.stderr)
 
-    setattr(hook, TAG, True)
+    setattr(hook, TAG, prog)  # the command's name, for config_errors
     sys.excepthook = hook
     return True
