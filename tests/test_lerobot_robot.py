@@ -386,6 +386,35 @@ def test_a_policy_that_reads_a_camera_the_robot_does_not_send_is_refused_at_conn
         _robot(tmp_path).connect()
 
 
+def test_with_no_camera_names_the_robot_sends_the_cameras_the_policy_reads(
+        tmp_path, monkeypatch, caplog):
+    """A wrist-camera policy on lerobot-rollout's line was refused at connect ("add
+    --robot.camera_names=..."); now the robot sends the cameras it reads, and says so."""
+    config = json.loads((SHIPPED / "config.json").read_text())
+    features = config["input_features"]
+    features["observation.images.wrist"] = dict(features["observation.images.front"])
+    (tmp_path / "w").mkdir()
+    (tmp_path / "w" / "config.json").write_text(json.dumps(config))
+    monkeypatch.setattr(sys, "argv", ["lerobot-rollout", f"--policy.path={tmp_path / 'w'}"])
+    robot = _robot(tmp_path)
+    assert robot.config.camera_names == ["front", "side", "wrist"]
+    with caplog.at_level("INFO"):
+        robot.connect()
+    try:
+        obs = robot.get_observation()
+        assert {cam: obs[cam].shape for cam in ("front", "side", "wrist")} == {
+            cam: (H, W, 3) for cam in ("front", "side", "wrist")}
+    finally:
+        robot.disconnect()
+    assert any(r.getMessage().endswith(
+        f"cameras front,side,wrist at {H}x{W}; cameras those {tmp_path / 'w'} reads "
+        "(--robot.camera_names chooses others), not paced (realtime=false)")
+        for r in caplog.records)
+    # given names are kept (and the connect check names what is missing)
+    assert _robot(tmp_path, camera_names=["front", "side"]).config.camera_names == [
+        "front", "side"]
+
+
 def test_the_expert_finds_its_robot_by_id(tmp_path):
     """Two sim robots in one process: the expert needs --teleop.robot_id, an unknown id names
     the connected ones, and a second robot with a taken id is refused without unregistering

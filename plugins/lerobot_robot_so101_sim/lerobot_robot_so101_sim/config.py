@@ -14,7 +14,7 @@ from pathlib import Path
 from lerobot.robots.config import RobotConfig
 from lerobot.teleoperators.config import TeleoperatorConfig
 
-from so101_sim.policy_frames import missing_config_line, policy_frame_size
+from so101_sim.policy_frames import PolicyReads, missing_config_line, policy_frame_size
 from so101_sim.tasks import load_task
 from so101_sim.tasks.spec import ALL_CAMERAS
 from so101_sim.train.checkpoint import train_image_size
@@ -39,7 +39,8 @@ class SO101SimConfig(RobotConfig):
     task: str = "pick_place"
     # Seed of the first episode; every later episode takes the next one.
     seed: int = 0
-    # Cameras in the observations, e.g. [front,side,wrist]; empty: the task's own.
+    # Cameras in the observations, e.g. [front,side,wrist]; empty: the task's own, or those the
+    # command line's local policy reads where the sim has them all.
     camera_names: list[str] = field(default_factory=list)
     # Size of each camera image in the observations. Default: 480 x 640, or, when the command
     # line names a local policy (--policy.path, --pretrained_name_or_path) and sets no image or
@@ -80,6 +81,12 @@ class SO101SimConfig(RobotConfig):
             raise ValueError(f"--robot.camera_names={list(names)} is invalid; expected distinct "
                              f"names from {list(ALL_CAMERAS)}, e.g. "
                              "--robot.camera_names='[front,side]' (empty: the task's)")
+        self.cameras_by: Path | None = None  # the policy whose cameras the robot took
+        reads = None if self.camera_names else PolicyReads.of(sys.argv)
+        if reads and reads.cameras and reads.cameras != names and set(reads.cameras) <= set(
+                ALL_CAMERAS):  # lerobot would hand the policy only the cameras the robot has
+            self.camera_names, self.cameras_by = list(reads.cameras), reads.policy
+            names = reads.cameras
         out = self.outcomes_path
         if out is not None and (Path(out).is_dir() or any(p.is_file() for p in Path(out).parents)):
             raise ValueError(f"--robot.outcomes_path={str(out)!r} is invalid: it is a folder or "
