@@ -8,6 +8,7 @@ demos with a KeyError, and one fitted to stack demos was evaluated on pick_place
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -19,8 +20,11 @@ from lerobot.envs.factory import make_env, make_env_config
 from lerobot.envs.utils import close_envs
 
 from so101_sim.dataset_reads import DatasetReads
+from so101_sim.harness.trained_on import default_task
 from so101_sim.lerobot_plugin import ENV_TYPE
 from so101_sim.record.api import record
+from so101_sim.tasks import load_task
+from so101_sim.train.checkpoint import SEEDS_KEY, TASK_KEY, TEXTS_KEY, demos_of
 from so101_sim.utils.lerobot_cli import TAG
 
 H, W = 96, 128  # the smallest size the default 84x84 crop of a diffusion policy fits
@@ -137,7 +141,7 @@ def test_lerobot_train_evaluates_on_what_the_dataset_holds(stack_wrist, tmp_path
            "--policy.horizon=8", "--policy.n_action_steps=2", "--policy.num_inference_steps=1",
            f"--env.type={ENV_TYPE}", "--env.episode_length=3", "--env_eval_freq=1",
            "--eval.n_episodes=1", "--eval.batch_size=1", "--steps=1", "--batch_size=2",
-           "--num_workers=0", "--wandb.enable=false", "--save_checkpoint=false",
+           "--num_workers=0", "--wandb.enable=false", "--save_freq=1",
            f"--output_dir={out}"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path,
                           env={**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"})
@@ -150,3 +154,18 @@ def test_lerobot_train_evaluates_on_what_the_dataset_holds(stack_wrist, tmp_path
     with av.open(str(videos[0])) as video:  # the three cameras side by side, as recorded
         stream = video.streams.video[0]
         assert (stream.height, stream.width) == (H, 3 * W)
+
+    # so101-sim eval of that checkpoint runs on the demos' task: from the dataset its
+    # train_config.json names, else from its env (a policy fitted to stack demos scored 0 on
+    # the default pick_place, without a word)
+    policy = out / "checkpoints" / "last" / "pretrained_model"
+    assert demos_of(policy) == {TASK_KEY: "stack", TEXTS_KEY: [load_task("stack").description],
+                                SEEDS_KEY: []}
+    assert default_task(str(policy), "pick_place") == "stack"
+    config = json.loads((policy / "train_config.json").read_text())
+    config["dataset"]["root"] = str(tmp_path / "moved")
+    (policy / "train_config.json").write_text(json.dumps(config))
+    assert demos_of(policy) == {TASK_KEY: "stack"}
+    config["env"] = None
+    (policy / "train_config.json").write_text(json.dumps(config))
+    assert demos_of(policy) == {} and default_task(str(policy), "pick_place") == "pick_place"

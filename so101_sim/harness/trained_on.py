@@ -1,11 +1,12 @@
-"""What a checkpoint's demos were, from the ``so101_sim_train.json`` ``train`` writes.
+"""What a checkpoint's demos were, from the ``so101_sim_train.json`` ``train`` writes (or, for a
+lerobot-train checkpoint, the dataset or env its ``train_config.json`` names).
 
 ``eval`` and ``curve`` default ``--task`` to the demos' task (a policy trained on ``stack``
 demos run on the default ``pick_place`` scores about 0 and looks broken), and say in one line
 when the task asked for is not one the demos showed. The harness refuses to measure a policy on
 evaluation seeds its demos hold (rollouts of ``eval --save-rollouts`` it was trained on): that
-rate would be on its training data. Checkpoints without these keys (older runs, other trainers)
-keep the plain default, get no note and no check.
+rate would be on its training data. Checkpoints that say none of this (older runs, other
+trainers) keep the plain default, get no note and no check.
 """
 
 from __future__ import annotations

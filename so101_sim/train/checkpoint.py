@@ -16,7 +16,9 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+from so101_sim.dataset.reader import stored_seeds
 from so101_sim.dataset.schema import EVAL_SEED_START
+from so101_sim.dataset.store import read_sidecar
 from so101_sim.tasks import available_tasks, load_task
 from so101_sim.train.presets import config_class
 from so101_sim.train.widen import widen_conditioning, widen_keypoints
@@ -31,6 +33,8 @@ TRAIN_INFO = "so101_sim_train.json"
 #: the evaluation seeds among theirs as [first, last] ranges (rollouts of ``eval
 #: --save-rollouts``: the harness will not measure the policy on its own training episodes).
 TASK_KEY, TEXTS_KEY, SEEDS_KEY = "dataset_task", "dataset_task_texts", "dataset_eval_seeds"
+#: lerobot-train's record of its command line, beside each checkpoint's weights.
+LEROBOT_TRAIN_CONFIG = "train_config.json"
 #: lerobot's key prefix of a camera's image input (``observation.images.<camera>``).
 IMAGE_PREFIX = "observation.images."
 
@@ -219,9 +223,29 @@ def demos_info(dataset_sidecar: dict[str, Any], task_texts: Any,
 
 
 def demos_of(path: str | Path) -> dict[str, Any]:
-    """The keys above from a checkpoint's sidecar ({} for a checkpoint without them)."""
-    info = read_train_info(path) or {}
+    """The keys above from a checkpoint's sidecar; for a lerobot-train checkpoint (none), from
+    the dataset its ``train_config.json`` names where that folder is here, else the task of its
+    so101-sim env ({} for a checkpoint that says neither)."""
+    info = read_train_info(path)
+    if info is None:
+        return _lerobot_train_demos(Path(path))
     return {k: info[k] for k in (TASK_KEY, TEXTS_KEY, SEEDS_KEY) if k in info}
+
+
+def _lerobot_train_demos(path: Path) -> dict[str, Any]:
+    import pandas as pd
+
+    try:  # lerobot-train's config, read as data
+        config = json.loads((path / LEROBOT_TRAIN_CONFIG).read_text(encoding="utf-8"))
+        root, env = config["dataset"].get("root"), config.get("env") or {}
+        data = Path(root).expanduser() if isinstance(root, str) else None  # cwd-relative
+        if data is not None and (data / "meta" / "info.json").is_file():
+            texts = pd.read_parquet(data / "meta" / "tasks.parquet").index
+            return demos_info(read_sidecar(data), texts, stored_seeds(data))
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}
+    task = env.get("task") if env.get("type") == "so101_pick_place" else None
+    return {TASK_KEY: task} if isinstance(task, str) else {}
 
 
 def ranges_text(ranges: list[list[int]], limit: int = 4) -> str:
