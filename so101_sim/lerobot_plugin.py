@@ -46,12 +46,14 @@ from so101_sim.policy_frames import (
     flag_value,
     missing_config_line,
     policy_frame_size,
+    policy_path,
     refuse_or_warn,
     size_warning,
 )
 from so101_sim.sim import OBS_TYPES, env_state_size
 from so101_sim.sim.env_args import check_cameras
 from so101_sim.tasks import ALL_CAMERAS, load_task
+from so101_sim.train.checkpoint import TASK_KEY, demos_of
 from so101_sim.utils.lerobot_cli import add_explainer, config_errors, one_line_errors
 from so101_sim.utils.units import FEATURE_NAMES
 from so101_sim.workers.local import ensure_fork_server
@@ -126,9 +128,9 @@ class SO101PickPlaceEnvConfig(EnvConfig):
                                  f"from {', '.join(ALL_CAMERAS)}, e.g. "
                                  "--env.cameras='[front,side,wrist]'") from None
         data = DatasetReads.of(sys.argv, HF_LEROBOT_HOME)  # lerobot-train's, if local
+        self._adopted_from = self._cameras_from = self._task_from = None
         taken = self._take_task(data)
         spec = load_task(self.task)
-        self._adopted_from = self._cameras_from = None
         if self.obs_type != "state":
             # lerobot-eval and lerobot-train's evaluation hand the policy these frames as they
             # are: left at the defaults, they would be the wrong picture (or a missing camera)
@@ -156,16 +158,23 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         self.features = self._derived_features()
 
     def _take_task(self, data: DatasetReads | None) -> list[str]:
-        """The dataset's task where the line names none (and that task loads)."""
-        if (data is None or data.task is None or data.task == self.task
+        """Where the line names no task: that of the demos of its local policy folder (as
+        ``so101-sim eval`` does), else of lerobot-train's dataset, if it loads here."""
+        found = policy_path(sys.argv)
+        task = (demos_of(found[0]).get(TASK_KEY) if found else
+                data.task if data is not None else None)
+        if (not isinstance(task, str) or task == self.task
                 or flag_value(sys.argv, "--env.task") is not None):
             return []
         try:
-            load_task(data.task)
+            load_task(task)
         except (OSError, ValueError):
-            return []  # a task file that moved: the warning says which task the demos were
-        self.task = data.task
-        return [f"task {data.task}"]
+            return []  # a task file that moved: the dataset's warning says which it was
+        self.task = task
+        if found:  # said when the envs are built, as the frame size is
+            self._task_from = found[0]
+            return []
+        return [f"task {task}"]
 
     def _take_cameras(self, task_cameras: tuple[str, ...], data: DatasetReads | None
                       ) -> list[str]:
@@ -247,15 +256,8 @@ class SO101PickPlaceEnvConfig(EnvConfig):
             raise ValueError(f"n_envs={n_envs} is invalid; expected at least 1")
         cameras = [k.split("/", 1)[1] for k in self.features if k.startswith("pixels/")]
         self._check_inputs(cameras)
-        if getattr(self, "_adopted_from", None) is not None:
-            logging.getLogger(__name__).info(
-                "--env.type=%s: sending %dx%d frames, the camera input size of %s (lerobot-eval "
-                "does not resize them; --env.image_height and --env.image_width choose another)",
-                ENV_TYPE, self.image_height, self.image_width, self._adopted_from)
-        if getattr(self, "_cameras_from", None) is not None:
-            logging.getLogger(__name__).info(
-                "--env.type=%s: sending cameras %s, those %s reads (--env.cameras chooses "
-                "others)", ENV_TYPE, ", ".join(cameras), self._cameras_from)
+        if line := self._policy_line(cameras):
+            logging.getLogger(__name__).info("--env.type=%s: %s", ENV_TYPE, line)
         warning = size_warning(sys.argv, (self.image_height, self.image_width), cameras, "--env")
         if warning:  # lerobot-eval hands the policy these frames as they are
             logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE, warning)
@@ -270,6 +272,19 @@ class SO101PickPlaceEnvConfig(EnvConfig):
             vec = gym.vector.SyncVectorEnv(
                 [make_one] * n_envs, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
         return {self.type: {0: vec}}
+
+    def _policy_line(self, cameras: list[str]) -> str | None:
+        """What the envs took from the command line's policy folder, in one line (or None)."""
+        taken = [text for source, text in (
+            (getattr(self, "_task_from", None), f"task {self.task}"),
+            (getattr(self, "_cameras_from", None), f"cameras {', '.join(cameras)}"),
+            (getattr(self, "_adopted_from", None),
+             f"{self.image_height}x{self.image_width} frames")) if source is not None]
+        policy = next((p for p in (getattr(self, name, None) for name in (
+            "_task_from", "_cameras_from", "_adopted_from")) if p is not None), None)
+        return (f"{', '.join(taken)}, as {policy} was trained on (lerobot-eval hands the policy "
+                "the frames as they are; --env.task, --env.cameras, --env.image_height and "
+                "--env.image_width choose others)") if taken else None
 
     def _check_inputs(self, cameras: list[str]) -> None:
         """Refuse (or warn, for a policy type that does without) a policy on the command line

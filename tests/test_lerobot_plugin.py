@@ -267,10 +267,10 @@ def test_lerobot_eval_sends_the_frame_size_of_the_policy_on_its_command_line(mon
         assert obs["pixels"]["front"].shape == (1, 60, 80, 3)
     finally:
         close_envs(envs)
-    said = [r.getMessage() for r in caplog.records if "sending" in r.getMessage()]
-    assert said == [f"--env.type={ENV_TYPE}: sending 60x80 frames, the camera input size of "
-                    f"{shipped} (lerobot-eval does not resize them; --env.image_height and "
-                    "--env.image_width choose another)"]
+    said = [r.getMessage() for r in caplog.records if "trained on" in r.getMessage()]
+    assert said == [f"--env.type={ENV_TYPE}: 60x80 frames, as {shipped} was trained on "
+                    "(lerobot-eval hands the policy the frames as they are; --env.task, "
+                    "--env.cameras, --env.image_height and --env.image_width choose others)"]
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
 
 
@@ -328,9 +328,10 @@ def test_lerobot_eval_refuses_a_policy_that_reads_a_camera_the_env_does_not_send
         assert sorted(obs["pixels"]) == ["front", "wrist"]
     finally:
         close_envs(envs)
-    assert [r.getMessage() for r in caplog.records if "cameras" in r.getMessage()] == [
-        f"--env.type={ENV_TYPE}: sending cameras front, wrist, those {vla} reads (--env.cameras "
-        "chooses others)"]
+    assert [r.getMessage() for r in caplog.records if "trained on" in r.getMessage()] == [
+        f"--env.type={ENV_TYPE}: cameras front, wrist, as {vla} was trained on (lerobot-eval "
+        "hands the policy the frames as they are; --env.task, --env.cameras, "
+        "--env.image_height and --env.image_width choose others)"]
     # given cameras without one of them: a policy type that pads a missing camera (smolvla,
     # pi0) runs, with one warning
     caplog.clear()

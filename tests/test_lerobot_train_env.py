@@ -130,9 +130,11 @@ def test_the_dataset_is_found_where_lerobot_looks_for_it(stack_wrist, tmp_path) 
                            home) is None
 
 
-def test_lerobot_train_evaluates_on_what_the_dataset_holds(stack_wrist, tmp_path) -> None:
+def test_lerobot_train_evaluates_on_what_the_dataset_holds(stack_wrist, tmp_path, monkeypatch,
+                                                           caplog) -> None:
     """The real `lerobot-train`, no --env.* flag but the type: one step, then an evaluation
-    episode in the envs it built. Before, that evaluation stopped with a KeyError."""
+    episode in the envs it built. Before, that evaluation stopped with a KeyError. Its
+    checkpoint is then evaluated on stack by so101-sim eval and lerobot-eval."""
     out = tmp_path / "run"
     cmd = [str(Path(sys.executable).parent / "lerobot-train"),
            f"--dataset.repo_id=local/{stack_wrist.name}", f"--dataset.root={stack_wrist}",
@@ -162,6 +164,16 @@ def test_lerobot_train_evaluates_on_what_the_dataset_holds(stack_wrist, tmp_path
     assert demos_of(policy) == {TASK_KEY: "stack", TEXTS_KEY: [load_task("stack").description],
                                 SEEDS_KEY: []}
     assert default_task(str(policy), "pick_place") == "stack"
+    # and so does lerobot-eval with it and no --env.* flag but the type
+    monkeypatch.setattr(sys, "argv", ["lerobot-eval", f"--policy.path={policy}"])
+    cfg = make_env_config(ENV_TYPE)
+    assert (cfg.task, cfg.cameras, cfg.image_height, cfg.image_width) == ("stack", CAMERAS, H, W)
+    with caplog.at_level("INFO"):
+        close_envs(make_env(cfg, n_envs=1, use_async_envs=False))
+    assert [r.getMessage() for r in caplog.records] == [
+        f"--env.type={ENV_TYPE}: task stack, cameras front, side, wrist, 96x128 frames, as "
+        f"{policy} was trained on (lerobot-eval hands the policy the frames as they are; "
+        "--env.task, --env.cameras, --env.image_height and --env.image_width choose others)"]
     config = json.loads((policy / "train_config.json").read_text())
     config["dataset"]["root"] = str(tmp_path / "moved")
     (policy / "train_config.json").write_text(json.dumps(config))

@@ -60,9 +60,9 @@ def test_lerobot_eval_runs_without_discovery_flags(tmp_path):
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
     assert run.returncode == 0, run.stderr[-3000:]
     assert "Imported third-party plugin: lerobot_env_so101_sim" in run.stderr
-    assert (f"--env.type={ENV_TYPE}: sending {H}x{W} frames, the camera input size of {ckpt} "
-            "(lerobot-eval does not resize them; --env.image_height and --env.image_width "
-            "choose another)") in run.stderr
+    assert (f"--env.type={ENV_TYPE}: {H}x{W} frames, as {ckpt} was trained on (lerobot-eval "
+            "hands the policy the frames as they are; --env.task, --env.cameras, "
+            "--env.image_height and --env.image_width choose others)") in run.stderr
     info = json.loads((out / "eval_info.json").read_text())
     assert info["overall"]["n_episodes"] == 2
     assert "Traceback" not in run.stderr and "libtorchcodec" not in run.stderr
