@@ -386,18 +386,20 @@ def test_a_policy_that_reads_a_camera_the_robot_does_not_send_is_refused_at_conn
         _robot(tmp_path).connect()
 
 
-def test_with_no_camera_names_the_robot_sends_the_cameras_the_policy_reads(
+def test_the_robot_takes_its_task_and_cameras_from_the_policy_on_the_line(
         tmp_path, monkeypatch, caplog):
     """A wrist-camera policy on lerobot-rollout's line was refused at connect ("add
-    --robot.camera_names=..."); now the robot sends the cameras it reads, and says so."""
+    --robot.camera_names=..."), and one trained on stack demos ran pick_place; now the robot
+    sends the cameras it reads on the task of its demos, and says so."""
     config = json.loads((SHIPPED / "config.json").read_text())
     features = config["input_features"]
     features["observation.images.wrist"] = dict(features["observation.images.front"])
     (tmp_path / "w").mkdir()
     (tmp_path / "w" / "config.json").write_text(json.dumps(config))
+    (tmp_path / "w" / "so101_sim_train.json").write_text(json.dumps({"dataset_task": "stack"}))
     monkeypatch.setattr(sys, "argv", ["lerobot-rollout", f"--policy.path={tmp_path / 'w'}"])
     robot = _robot(tmp_path)
-    assert robot.config.camera_names == ["front", "side", "wrist"]
+    assert (robot.config.task, robot.config.camera_names) == ("stack", ["front", "side", "wrist"])
     with caplog.at_level("INFO"):
         robot.connect()
     try:
@@ -407,12 +409,14 @@ def test_with_no_camera_names_the_robot_sends_the_cameras_the_policy_reads(
     finally:
         robot.disconnect()
     assert any(r.getMessage().endswith(
-        f"cameras front,side,wrist at {H}x{W}; cameras those {tmp_path / 'w'} reads "
-        "(--robot.camera_names chooses others), not paced (realtime=false)")
-        for r in caplog.records)
-    # given names are kept (and the connect check names what is missing)
+        f"task stack, cameras front,side,wrist at {H}x{W}; task and cameras as {tmp_path / 'w'} "
+        "was trained on (--robot.task and --robot.camera_names choose others), not paced "
+        "(realtime=false)") for r in caplog.records)
+    # given names and task are kept (and the connect check names a missing camera)
     assert _robot(tmp_path, camera_names=["front", "side"]).config.camera_names == [
         "front", "side"]
+    monkeypatch.setattr(sys, "argv", [*sys.argv, "--robot.task=lift"])
+    assert _robot(tmp_path, task="lift").config.task == "lift"
 
 
 def test_the_expert_finds_its_robot_by_id(tmp_path):

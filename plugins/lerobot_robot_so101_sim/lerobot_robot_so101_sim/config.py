@@ -7,6 +7,7 @@ config class ``XxxConfig`` of module ``lerobot_robot_so101_sim.config`` is turne
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,10 +15,16 @@ from pathlib import Path
 from lerobot.robots.config import RobotConfig
 from lerobot.teleoperators.config import TeleoperatorConfig
 
-from so101_sim.policy_frames import PolicyReads, missing_config_line, policy_frame_size
+from so101_sim.policy_frames import (
+    PolicyReads,
+    flag_value,
+    missing_config_line,
+    policy_frame_size,
+    policy_path,
+)
 from so101_sim.tasks import load_task
 from so101_sim.tasks.spec import ALL_CAMERAS
-from so101_sim.train.checkpoint import train_image_size
+from so101_sim.train.checkpoint import TASK_KEY, demos_of, train_image_size
 from so101_sim.utils.lerobot_cli import add_explainer, config_errors, one_line_errors
 
 ROBOT_TYPE = "so101_sim"
@@ -72,6 +79,14 @@ class SO101SimConfig(RobotConfig):
             self._check()
 
     def _check(self) -> None:
+        self.task_by: Path | None = None  # the policy whose demos' task the robot took
+        found = policy_path(sys.argv)
+        trained = demos_of(found[0]).get(TASK_KEY) if found else None
+        if (isinstance(trained, str) and trained != self.task
+                and flag_value(sys.argv, "--robot.task") is None):
+            with contextlib.suppress(OSError, ValueError):  # one that moved: the default
+                load_task(trained)
+                self.task, self.task_by = trained, found[0]
         try:
             task = load_task(self.task)
         except ValueError as exc:
@@ -127,6 +142,17 @@ class SO101SimConfig(RobotConfig):
             render = None  # an unreadable training record: render at the image size
         if render is not None and render != found[0]:
             self.render_height, self.render_width = render
+
+    def taken_note(self) -> str:
+        """The connect line's note on the task and cameras taken from the line's policy."""
+        took = [(what, flag) for what, flag, by in (
+            ("task", "--robot.task", self.task_by),
+            ("cameras", "--robot.camera_names", self.cameras_by)) if by is not None]
+        if not took:
+            return ""
+        return (f"; {' and '.join(w for w, _ in took)} as {self.task_by or self.cameras_by} was "
+                f"trained on ({' and '.join(f for _, f in took)} choose"
+                f"{'s' if len(took) == 1 else ''} others)")
 
     @property
     def image_size(self) -> tuple[int, int]:

@@ -363,9 +363,7 @@ class SO101Sim(Robot):
         if getattr(cfg, "sized_by", None) is not None:  # said, as the flags would have been
             note += (f", the input size of {cfg.sized_by} (--robot.image_height/width and "
                      "render_height/width choose others)")
-        if getattr(cfg, "cameras_by", None) is not None:
-            note += (f"; cameras those {cfg.cameras_by} reads (--robot.camera_names chooses "
-                     "others)")
+        note += cfg.taken_note()
         return note
 
     # ------------------------------------------------------------------ for the expert
