@@ -64,6 +64,7 @@ from so101_sim.workers.local import ensure_fork_server
 __path__: list[str] = []
 
 ENV_TYPE = "so101_pick_place"
+DEFAULT_TASK = "pick_place"  # a policy or dataset on the command line may set another
 DEFAULT_FRAME = (480, 640)  # the recorded size; a policy on the command line may set another
 ACTION_DIM = len(FEATURE_NAMES)
 one_line_errors()  # a lerobot command given a bad --env.* value says so in one line
@@ -81,7 +82,7 @@ class SO101PickPlaceEnvConfig(EnvConfig):
     lerobot reads them, and they are checked against the task instead of silently disagreeing.
     """
 
-    task: str | None = "pick_place"  # name in envs/ or path to a task TOML
+    task: str | None = DEFAULT_TASK  # name in envs/ or path to a task TOML
     fps: int | None = None  # None: the task's [episode] fps (another value is refused)
     episode_length: int | None = None  # TimeLimit for lerobot-eval; None: the task's max_steps
     obs_type: str = "pixels_agent_pos"
@@ -163,9 +164,9 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         found = policy_path(sys.argv)
         task = (demos_of(found[0]).get(TASK_KEY) if found else
                 data.task if data is not None else None)
-        if (not isinstance(task, str) or task == self.task
+        if (not isinstance(task, str) or self.task != DEFAULT_TASK or task == self.task
                 or flag_value(sys.argv, "--env.task") is not None):
-            return []
+            return []  # a task chosen on the line, or in Python (hub_env's SO101_TASK)
         try:
             load_task(task)
         except (OSError, ValueError):

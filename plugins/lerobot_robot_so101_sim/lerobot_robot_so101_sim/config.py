@@ -32,6 +32,7 @@ TELEOP_TYPE = "so101_sim_expert"
 EPISODE_END = ("auto", "reset", "hold")
 _SIZE_RANGE = (16, 2048)
 DEFAULT_IMAGE = (480, 640)
+DEFAULT_TASK = "pick_place"  # the command line's policy may set another
 one_line_errors()  # a lerobot command given a bad --robot.* value says so in one line
 add_explainer(missing_config_line)  # and a --policy.path that is a run folder
 
@@ -43,7 +44,7 @@ class SO101SimConfig(RobotConfig):
 
     # A task of the suite (pick_place, lift, stack, tidy, pick_place_anywhere, pick_place_dr)
     # or the path of a task TOML file.
-    task: str = "pick_place"
+    task: str = DEFAULT_TASK
     # Seed of the first episode; every later episode takes the next one.
     seed: int = 0
     # Cameras in the observations, e.g. [front,side,wrist]; empty: the task's own, or those the
@@ -82,7 +83,7 @@ class SO101SimConfig(RobotConfig):
         self.task_by: Path | None = None  # the policy whose demos' task the robot took
         found = policy_path(sys.argv)
         trained = demos_of(found[0]).get(TASK_KEY) if found else None
-        if (isinstance(trained, str) and trained != self.task
+        if (isinstance(trained, str) and self.task == DEFAULT_TASK != trained
                 and flag_value(sys.argv, "--robot.task") is None):
             with contextlib.suppress(OSError, ValueError):  # one that moved: the default
                 load_task(trained)
