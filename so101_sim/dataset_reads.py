@@ -29,8 +29,7 @@ from so101_sim.policy_frames import (
     policy_path,
     sets_frame_size,
 )
-
-IMAGE_PREFIX = "observation.images."
+from so101_sim.train.checkpoint import IMAGE_PREFIX
 
 
 def _frame_size(feature: dict) -> tuple[int, int]:
@@ -111,7 +110,10 @@ class DatasetReads:
             problems.append(InputProblem(
                 f"{head} holds demos of task {self.task}, and --env.task={task} evaluates the "
                 f"policy trained on them on {task}; drop --env.task, or pass "
-                f"--env.task={self.task}", False))
+                f"--env.task={self.task}" if flag_value(argv, "--env.task") is not None else
+                f"{head} holds demos of task {self.task}, which does not load here, so the "
+                f"policy trained on them would be evaluated on {task}; pass --env.task with "
+                "that task's file", False))
         return problems
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -115,6 +116,23 @@ def test_a_camera_the_dataset_holds_and_the_env_would_not_send_is_refused(
                        r"distinct names from front, side, wrist, e\.g\. "
                        r"--env\.cameras='\[front,side,wrist\]'"):
         _envs(monkeypatch, line, cameras=["front", "top"])
+
+
+def test_a_task_file_that_is_not_here_is_named(stack_wrist, tmp_path, monkeypatch,
+                                               caplog) -> None:
+    """Demos recorded from a task file on another machine: the env keeps its default task and
+    says which task the demos were (what the env reads of a dataset: info.json, the sidecar)."""
+    moved = tmp_path / "moved"
+    (moved / "meta").mkdir(parents=True)
+    shutil.copy(stack_wrist / "meta" / "info.json", moved / "meta")
+    (moved / "so101_sim_recording.json").write_text(json.dumps({"task": "/elsewhere/s2.toml"}))
+    with caplog.at_level("INFO"):
+        cfg = _envs(monkeypatch, [f"--dataset.root={moved}", "--policy.type=diffusion"])
+    assert (cfg.task, cfg.cameras) == ("pick_place", CAMERAS)
+    assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == [
+        f"--env.type={ENV_TYPE}: dataset {moved} holds demos of task /elsewhere/s2.toml, which "
+        "does not load here, so the policy trained on them would be evaluated on pick_place; "
+        "pass --env.task with that task's file"]
 
 
 def test_the_dataset_is_found_where_lerobot_looks_for_it(stack_wrist, tmp_path) -> None:
