@@ -29,7 +29,7 @@ from so101_sim.policy_frames import (
     policy_path,
     sets_frame_size,
 )
-from so101_sim.train.checkpoint import IMAGE_PREFIX
+from so101_sim.train.checkpoint import IMAGE_PREFIX, image_input_shapes
 
 
 def _frame_size(feature: dict) -> tuple[int, int]:
@@ -57,6 +57,11 @@ class DatasetReads:
         a local policy folder on the line, or a ``--config_path``."""
         if policy_path(argv) is not None or flag_value(argv, "--config_path") is not None:
             return None
+        return cls.at(argv, home)
+
+    @classmethod
+    def at(cls, argv: Sequence[str], home: Path | None) -> DatasetReads | None:
+        """The dataset the line names, whatever else it names (None: none we can read)."""
         root, repo = flag_value(argv, "--dataset.root"), flag_value(argv, "--dataset.repo_id")
         path = (Path(root).expanduser() if root else
                 home / repo if repo and home is not None else None)
@@ -117,4 +122,29 @@ class DatasetReads:
         return problems
 
 
-__all__ = ["DatasetReads"]
+def fine_tune_problem(argv: Sequence[str], home: Path | None) -> str | None:
+    """lerobot-train fine-tuning a local policy (``--policy.path``) on a dataset whose frames
+    are not the policy's input size: it hands the policy the dataset's frames as they are, so
+    the policy would learn from other pictures than it sees (the shipped 60x80 policy on the
+    recorded 480x640 frames trains on 54x72 crops of them, without a word). None otherwise."""
+    found = policy_path(argv)
+    data = DatasetReads.at(argv, home) if found else None
+    if found is None or data is None or flag_value(argv, "--config_path") is not None:
+        return None
+    try:
+        takes = {cam: tuple(shape[1:3]) for cam, shape in image_input_shapes(found[0]).items()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None  # lerobot-train will say what is wrong with it
+    other = {cam: hw for cam, hw in data.sizes.items() if cam in takes and hw != takes[cam]}
+    if not other:
+        return None
+    cam, (h, w) = next(iter(other.items()))
+    th, tw = takes[cam]
+    return (f"{found[0]} takes camera frames of {th}x{tw}, and dataset {data.root} holds "
+            f"{h}x{w} ({cam}): lerobot-train hands a policy the dataset's frames as they are, "
+            "so it would learn from other pictures than it sees; fine-tune it with `so101-sim "
+            f"train --dataset {data.root} --init-from {found[0]} --out RUN` (which resizes as "
+            f"its training did), or record the dataset at {th}x{tw}")
+
+
+__all__ = ["DatasetReads", "fine_tune_problem"]

@@ -39,7 +39,7 @@ from lerobot.utils.constants import (
 )
 
 from so101_sim import ENV_ID
-from so101_sim.dataset_reads import DatasetReads
+from so101_sim.dataset_reads import DatasetReads, fine_tune_problem
 from so101_sim.policy_frames import (
     PolicyReads,
     env_input_problem,
@@ -146,6 +146,8 @@ class SO101PickPlaceEnvConfig(EnvConfig):
                     taken += [] if found else [f"{size[0]}x{size[1]} frames"]
         if data is not None:
             self._tell_dataset(data, taken, spec)
+        elif problem := fine_tune_problem(sys.argv, HF_LEROBOT_HOME):
+            _say(logging.WARNING, f"--env.type={ENV_TYPE}: {problem}")
         self.fps = spec.fps if self.fps is None else self.fps
         self.episode_length = (spec.max_steps if self.episode_length is None
                                else self.episode_length)

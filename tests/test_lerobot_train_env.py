@@ -20,7 +20,7 @@ import pytest
 from lerobot.envs.factory import make_env, make_env_config
 from lerobot.envs.utils import close_envs
 
-from so101_sim.dataset_reads import DatasetReads
+from so101_sim.dataset_reads import DatasetReads, fine_tune_problem
 from so101_sim.harness.trained_on import default_task
 from so101_sim.lerobot_plugin import ENV_TYPE
 from so101_sim.record.api import record
@@ -30,6 +30,7 @@ from so101_sim.utils.lerobot_cli import TAG
 
 H, W = 96, 128  # the smallest size the default 84x84 crop of a diffusion policy fits
 CAMERAS = ["front", "side", "wrist"]
+SHIPPED = Path(__file__).resolve().parents[1] / "policy" / "pick_place_diffusion"
 
 
 @pytest.fixture(scope="module")
@@ -135,6 +136,26 @@ def test_a_task_file_that_is_not_here_is_named(stack_wrist, tmp_path, monkeypatc
         "pass --env.task with that task's file"]
 
 
+def test_fine_tuning_a_policy_on_frames_of_another_size_is_named(stack_wrist, monkeypatch,
+                                                                 caplog) -> None:
+    """lerobot-train --policy.path=<the shipped 60x80 policy> on 96x128 demos trained on crops
+    of the wrong frames without a word (checked: rc 0, no warning); now one warning names
+    so101-sim train --init-from, which resizes as the policy's training did."""
+    line = [f"--dataset.root={stack_wrist}", "--dataset.repo_id=local/x",
+            f"--policy.path={SHIPPED}"]
+    with caplog.at_level("INFO"):
+        cfg = _envs(monkeypatch, line)
+    assert (cfg.image_height, cfg.image_width) == (60, 80)  # the policy decides what is sent
+    assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == [
+        f"--env.type={ENV_TYPE}: {SHIPPED} takes camera frames of 60x80, and dataset "
+        f"{stack_wrist} holds 96x128 (front): lerobot-train hands a policy the dataset's frames "
+        "as they are, so it would learn from other pictures than it sees; fine-tune it with "
+        f"`so101-sim train --dataset {stack_wrist} --init-from {SHIPPED} --out RUN` (which "
+        "resizes as its training did), or record the dataset at 60x80"]
+    assert fine_tune_problem([*line, "--config_path=x.json"], None) is None
+    assert fine_tune_problem([f"--policy.path={SHIPPED}"], None) is None
+
+
 def test_the_dataset_is_found_where_lerobot_looks_for_it(stack_wrist, tmp_path) -> None:
     """--dataset.root, else lerobot's home / --dataset.repo_id; a policy folder on the line
     decides instead, and a folder that is no dataset is left to lerobot to report."""
@@ -143,8 +164,7 @@ def test_the_dataset_is_found_where_lerobot_looks_for_it(stack_wrist, tmp_path) 
     assert found is not None and found.root == stack_wrist and found.task == "stack"
     assert found.sizes == {cam: (H, W) for cam in CAMERAS}
     assert DatasetReads.of([f"--dataset.root={tmp_path}"], home) is None
-    policy = Path(__file__).resolve().parents[1] / "policy" / "pick_place_diffusion"
-    assert DatasetReads.of([f"--dataset.root={stack_wrist}", f"--policy.path={policy}"],
+    assert DatasetReads.of([f"--dataset.root={stack_wrist}", f"--policy.path={SHIPPED}"],
                            home) is None
 
 
