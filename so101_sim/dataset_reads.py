@@ -21,6 +21,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
+from so101_sim.dataset.reader import read_frames
 from so101_sim.dataset.store import SIDECAR
 from so101_sim.policy_frames import (
     EVERY_CAMERA_TYPES,
@@ -78,6 +81,16 @@ class DatasetReads:
         except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError):
             return None
         return cls(path, task if isinstance(task, str) else None, sizes)
+
+    def episode_seed(self, episode: int) -> int | None:
+        """The reset seed of dataset episode `episode` (None for a dataset without the
+        ``episode_seed`` column so101-sim record writes, or without that episode)."""
+        try:
+            rows = read_frames(self.root, ["episode_index", "episode_seed"])
+        except (OSError, ValueError, KeyError):
+            return None
+        seeds = rows.loc[rows["episode_index"] == episode, "episode_seed"]
+        return int(np.asarray(seeds.iloc[0]).reshape(-1)[0]) if len(seeds) else None
 
     def frame_size(self, argv: Sequence[str]) -> tuple[int, int] | None:
         """The one frame size of the dataset's cameras, where the line chooses none."""

@@ -419,6 +419,40 @@ def test_the_robot_takes_its_task_and_cameras_from_the_policy_on_the_line(
     assert _robot(tmp_path, task="lift").config.task == "lift"
 
 
+def test_lerobot_replay_of_a_recording_takes_its_seed_and_task(tmp_path, monkeypatch, caplog):
+    """`lerobot-replay --robot.type=so101_sim --dataset.root=DATA --dataset.episode=N` of a
+    so101-sim recording replayed the episode's actions on seed 0 of pick_place: they missed the
+    cube (checked by hand: "unfinished"). Now the robot takes the episode's seed and the
+    recording's task, says so, and the replay solves the task as the recording did."""
+    from so101_sim.dataset.reader import read_frames
+    from so101_sim.record.api import record
+
+    data = tmp_path / "stack"
+    record(data, 1, task="stack", seed_start=5, image_size=(H, W), progress=False)
+    monkeypatch.setattr(sys, "argv", ["lerobot-replay", f"--dataset.root={data}",
+                                      "--dataset.repo_id=local/stack", "--dataset.episode=0"])
+    out = tmp_path / "replayed.jsonl"
+    robot = _robot(tmp_path, outcomes_path=out, episode_end="hold")
+    assert (robot.config.task, robot.config.seed) == ("stack", 5)
+    rows = read_frames(data, ["action"])
+    with caplog.at_level("INFO"):
+        robot.connect()
+    try:
+        for action in rows["action"]:
+            robot.send_action(dict(zip(FEATURE_NAMES, np.asarray(action, float), strict=True)))
+    finally:
+        robot.disconnect()
+    assert any(r.getMessage().endswith(
+        f"task stack, cameras front,side at {H}x{W}; task stack and seed 5 of episode 0 of "
+        f"dataset {data} (--robot.task and --robot.seed choose others), not paced "
+        "(realtime=false)") for r in caplog.records)
+    (replayed,) = _outcomes(out)
+    assert (replayed["seed"], replayed["task"], replayed["success"]) == (5, "stack", True)
+    # what the line gives is kept
+    monkeypatch.setattr(sys, "argv", [*sys.argv, "--robot.seed=7"])
+    assert _robot(tmp_path, seed=7).config.seed == 7
+
+
 def test_the_expert_finds_its_robot_by_id(tmp_path):
     """Two sim robots in one process: the expert needs --teleop.robot_id, an unknown id names
     the connected ones, and a second robot with a taken id is refused without unregistering

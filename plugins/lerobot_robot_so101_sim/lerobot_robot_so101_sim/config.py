@@ -14,7 +14,9 @@ from pathlib import Path
 
 from lerobot.robots.config import RobotConfig
 from lerobot.teleoperators.config import TeleoperatorConfig
+from lerobot.utils.constants import HF_LEROBOT_HOME
 
+from so101_sim.dataset_reads import DatasetReads
 from so101_sim.policy_frames import (
     PolicyReads,
     flag_value,
@@ -81,6 +83,11 @@ class SO101SimConfig(RobotConfig):
 
     def _check(self) -> None:
         self.task_by: Path | None = None  # the policy whose demos' task the robot took
+        self.replay_note = ""  # what the robot took from the episode lerobot-replay replays
+        episode = flag_value(sys.argv, "--dataset.episode")
+        data = DatasetReads.at(sys.argv, HF_LEROBOT_HOME) if episode is not None else None
+        if data is not None and episode.isdigit():
+            self._take_replayed(data, int(episode))
         found = policy_path(sys.argv)
         trained = demos_of(found[0]).get(TASK_KEY) if found else None
         if (isinstance(trained, str) and self.task == DEFAULT_TASK != trained
@@ -144,16 +151,36 @@ class SO101SimConfig(RobotConfig):
         if render is not None and render != found[0]:
             self.render_height, self.render_width = render
 
+    def _take_replayed(self, data: DatasetReads, episode: int) -> None:
+        """lerobot-replay of a so101-sim recording: the episode's seed and the recording's task
+        where the line gives none (on another seed the replayed actions miss the cube)."""
+        seed = data.episode_seed(episode) if flag_value(sys.argv, "--robot.seed") is None else None
+        task = data.task if (self.task == DEFAULT_TASK != data.task
+                             and flag_value(sys.argv, "--robot.task") is None) else None
+        if task is not None:
+            try:
+                load_task(task)
+            except (OSError, ValueError):
+                task = None  # a task file that is not here: the default, as given
+        took = [(f"task {task}", "--robot.task")] if task else []
+        took += [(f"seed {seed}", "--robot.seed")] if seed is not None else []
+        if not took:
+            return
+        self.task, self.seed = task or self.task, self.seed if seed is None else seed
+        self.replay_note = (f"; {' and '.join(w for w, _ in took)} of episode {episode} of "
+                            f"dataset {data.root} ({' and '.join(f for _, f in took)} "
+                            f"choose{'s' if len(took) == 1 else ''} others)")
+
     def taken_note(self) -> str:
-        """The connect line's note on the task and cameras taken from the line's policy."""
+        """The connect line's note on what the robot took from the line's policy or dataset."""
         took = [(what, flag) for what, flag, by in (
             ("task", "--robot.task", self.task_by),
             ("cameras", "--robot.camera_names", self.cameras_by)) if by is not None]
         if not took:
-            return ""
+            return self.replay_note
         return (f"; {' and '.join(w for w, _ in took)} as {self.task_by or self.cameras_by} was "
                 f"trained on ({' and '.join(f for _, f in took)} choose"
-                f"{'s' if len(took) == 1 else ''} others)")
+                f"{'s' if len(took) == 1 else ''} others){self.replay_note}")
 
     @property
     def image_size(self) -> tuple[int, int]:
