@@ -52,7 +52,7 @@ from so101_sim.policy_frames import (
 )
 from so101_sim.sim import OBS_TYPES, env_state_size
 from so101_sim.sim.env_args import check_cameras
-from so101_sim.tasks import ALL_CAMERAS, load_task
+from so101_sim.tasks import ALL_CAMERAS, load_task, loads_here
 from so101_sim.train.checkpoint import TASK_KEY, demos_of
 from so101_sim.utils.lerobot_cli import add_explainer, config_errors, one_line_errors
 from so101_sim.utils.units import FEATURE_NAMES
@@ -169,9 +169,7 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         if (not isinstance(task, str) or self.task != DEFAULT_TASK or task == self.task
                 or flag_value(sys.argv, "--env.task") is not None):
             return []  # a task chosen on the line, or in Python (hub_env's SO101_TASK)
-        try:
-            load_task(task)
-        except (OSError, ValueError):
+        if not loads_here(task):
             return []  # a task file that moved: the dataset's warning says which it was
         self.task = task
         if found:  # said when the envs are built, as the frame size is

@@ -27,6 +27,7 @@ from so101_sim.tasks.spec import (
     TaskSpecError,
     available_tasks,
     load_task,
+    loads_here,
     parse_task,
     resolve_task_path,
     task_ref,
@@ -34,7 +35,7 @@ from so101_sim.tasks.spec import (
 
 __all__ = ["ALL_CAMERAS", "DEFAULT_CAMERAS", "PAN_AXIS_XY", "Layout", "PlanContext", "TaskKind",
            "TaskSpec", "TaskSpecError", "Tracker", "available_tasks", "failure_modes",
-           "get_kind", "load_task", "parse_task", "register_kind", "registered_kinds",
+           "get_kind", "load_task", "loads_here", "parse_task", "register_kind", "registered_kinds",
            "resolve_task_path", "sample_layout", "task_ref"]
 
 

@@ -256,6 +256,16 @@ def load_task(task: str | Path | TaskSpec = "pick_place") -> TaskSpec:
     return parse_task(raw, source=str(path))
 
 
+def loads_here(task: str | Path) -> bool:
+    """Whether `task` loads on this machine (a .toml path recorded elsewhere may not): what a
+    default taken from a checkpoint or a dataset checks before it is used."""
+    try:
+        load_task(task)
+    except (OSError, ValueError):
+        return False
+    return True
+
+
 def parse_task(raw: dict[str, Any], source: str = "<dict>") -> TaskSpec:
     values: dict[str, Any] = dict(_DEFAULTS)
     kind = raw.get("kind", "pick_place")

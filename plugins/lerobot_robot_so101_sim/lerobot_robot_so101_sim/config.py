@@ -7,7 +7,6 @@ config class ``XxxConfig`` of module ``lerobot_robot_so101_sim.config`` is turne
 
 from __future__ import annotations
 
-import contextlib
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +23,7 @@ from so101_sim.policy_frames import (
     policy_frame_size,
     policy_path,
 )
-from so101_sim.tasks import load_task
+from so101_sim.tasks import load_task, loads_here
 from so101_sim.tasks.spec import ALL_CAMERAS
 from so101_sim.train.checkpoint import TASK_KEY, demos_of, train_image_size
 from so101_sim.utils.lerobot_cli import add_explainer, config_errors, one_line_errors
@@ -91,10 +90,8 @@ class SO101SimConfig(RobotConfig):
         found = policy_path(sys.argv)
         trained = demos_of(found[0]).get(TASK_KEY) if found else None
         if (isinstance(trained, str) and self.task == DEFAULT_TASK != trained
-                and flag_value(sys.argv, "--robot.task") is None):
-            with contextlib.suppress(OSError, ValueError):  # one that moved: the default
-                load_task(trained)
-                self.task, self.task_by = trained, found[0]
+                and flag_value(sys.argv, "--robot.task") is None and loads_here(trained)):
+            self.task, self.task_by = trained, found[0]
         try:
             task = load_task(self.task)
         except ValueError as exc:
@@ -155,13 +152,9 @@ class SO101SimConfig(RobotConfig):
         """lerobot-replay of a so101-sim recording: the episode's seed and the recording's task
         where the line gives none (on another seed the replayed actions miss the cube)."""
         seed = data.episode_seed(episode) if flag_value(sys.argv, "--robot.seed") is None else None
-        task = data.task if (self.task == DEFAULT_TASK != data.task
-                             and flag_value(sys.argv, "--robot.task") is None) else None
-        if task is not None:
-            try:
-                load_task(task)
-            except (OSError, ValueError):
-                task = None  # a task file that is not here: the default, as given
+        task = data.task if (self.task == DEFAULT_TASK != data.task and data.task is not None
+                             and flag_value(sys.argv, "--robot.task") is None
+                             and loads_here(data.task)) else None
         took = [(f"task {task}", "--robot.task")] if task else []
         took += [(f"seed {seed}", "--robot.seed")] if seed is not None else []
         if not took:
