@@ -40,6 +40,7 @@ from lerobot.utils.constants import (
 
 from so101_sim import ENV_ID
 from so101_sim.dataset_reads import DatasetReads, fine_tune_problem
+from so101_sim.harness.trained_on import unseen_task_note
 from so101_sim.policy_frames import (
     PolicyReads,
     env_input_problem,
@@ -259,6 +260,10 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         self._check_inputs(cameras)
         if line := self._policy_line(cameras):
             logging.getLogger(__name__).info("--env.type=%s: %s", ENV_TYPE, line)
+        found = policy_path(sys.argv)
+        if found and (note := unseen_task_note(found[0], [self.task], "--env.task")):
+            logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE,
+                                                note.removeprefix("note: "))
         warning = size_warning(sys.argv, (self.image_height, self.image_width), cameras, "--env")
         if warning:  # lerobot-eval hands the policy these frames as they are
             logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE, warning)

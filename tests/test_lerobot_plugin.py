@@ -274,6 +274,25 @@ def test_lerobot_eval_sends_the_frame_size_of_the_policy_on_its_command_line(mon
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
 
 
+def test_lerobot_eval_of_a_policy_on_a_task_its_demos_never_had_says_so(monkeypatch,
+                                                                       caplog) -> None:
+    """`lerobot-eval --env.task=stack --policy.path=policy/pick_place_diffusion` scored about 0
+    without a word; now one warning, as `so101-sim eval --task stack` gives a note."""
+    import sys
+    from pathlib import Path
+
+    shipped = Path(__file__).resolve().parents[1] / "policy" / "pick_place_diffusion"
+    monkeypatch.setattr(sys, "argv", ["lerobot-eval", f"--policy.path={shipped}",
+                                      "--env.task=stack"])
+    cfg = make_env_config(ENV_TYPE, task="stack", episode_length=EPISODE_LENGTH)
+    with caplog.at_level("WARNING"):
+        close_envs(make_env(cfg, n_envs=1, use_async_envs=False))
+    assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == [
+        f"--env.type={ENV_TYPE}: stack ('Stack the red cube on top of the blue cube.') is not a "
+        f"task {shipped} was trained on (its demos: 'Pick up the red cube and place it on the "
+        "green target.'); expect a low rate, or pass the --env.task it learned"]
+
+
 def _policy_config(folder, kind: str, cameras: list[str], env_state: bool = False):
     """A checkpoint's config.json alone: all the input check reads (as data)."""
     import json

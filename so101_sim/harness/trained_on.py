@@ -49,9 +49,11 @@ def default_task(policy: str, fallback: str) -> str:
     return task
 
 
-def unseen_task_note(checkpoint: str | Path, tasks: Sequence[str | Path]) -> str | None:
+def unseen_task_note(checkpoint: str | Path, tasks: Sequence[str | Path],
+                     flag: str = "--task") -> str | None:
     """One line naming the `tasks` whose text is not among those of the checkpoint's demos
-    (None if every one is, or the checkpoint does not say)."""
+    (None if every one is, or the checkpoint does not say); `flag` is the command's task
+    option (lerobot-eval's is --env.task)."""
     texts = _info(checkpoint).get(TEXTS_KEY)
     if not isinstance(texts, list) or not texts:
         return None
@@ -63,7 +65,7 @@ def unseen_task_note(checkpoint: str | Path, tasks: Sequence[str | Path]) -> str
              else ", ".join(s.name for s in unseen))
     return (f"note: {which} {'is not a task' if len(unseen) == 1 else 'are not tasks'} "
             f"{checkpoint} was trained on (its demos: {shown}); expect a low rate"
-            f"{'' if len(unseen) == 1 else ' there'}, or pass the --task it learned")
+            f"{'' if len(unseen) == 1 else ' there'}, or pass the {flag} it learned")
 
 
 def check_unseen_seeds(demos: dict[str, Any], task: Any, seeds: Iterable[int],
