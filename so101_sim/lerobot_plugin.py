@@ -55,7 +55,7 @@ from so101_sim.sim import OBS_TYPES, env_state_size
 from so101_sim.sim.env_args import check_cameras
 from so101_sim.tasks import ALL_CAMERAS, load_task, loads_here
 from so101_sim.train.checkpoint import TASK_KEY, demos_of
-from so101_sim.utils.lerobot_cli import add_explainer, config_errors, one_line_errors
+from so101_sim.utils.lerobot_cli import add_explainer, config_errors, one_line_errors, say
 from so101_sim.utils.units import FEATURE_NAMES
 from so101_sim.workers.local import ensure_fork_server
 
@@ -148,7 +148,7 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         if data is not None:
             self._tell_dataset(data, taken, spec)
         elif problem := fine_tune_problem(sys.argv, HF_LEROBOT_HOME):
-            _say(logging.WARNING, f"--env.type={ENV_TYPE}: {problem}")
+            say(__name__, logging.WARNING, f"--env.type={ENV_TYPE}: {problem}")
         self.fps = spec.fps if self.fps is None else self.fps
         self.episode_length = (spec.max_steps if self.episode_length is None
                                else self.episode_length)
@@ -199,15 +199,15 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         from it (an error for a camera a diffusion or ACT policy would miss): said while the
         command line is parsed, before any training."""
         if taken:
-            _say(logging.INFO, f"--env.type={ENV_TYPE}: {', '.join(taken)}, as in dataset "
+            say(__name__, logging.INFO, f"--env.type={ENV_TYPE}: {', '.join(taken)}, as in dataset "
                  f"{data.root}, so that the policy trained on it is evaluated on what it learns "
                  "from (--env.task, --env.cameras, --env.image_height and --env.image_width "
                  "choose others)")
         cameras = [] if self.obs_type == "state" else self.cameras or list(spec.cameras)
         for problem in data.mismatches(sys.argv, self.task, cameras,
                                        (self.image_height, self.image_width)):
-            refuse_or_warn(problem, f"--env.type={ENV_TYPE}",
-                           lambda text: _say(logging.WARNING, f"--env.type={ENV_TYPE}: {text}"))
+            refuse_or_warn(problem, f"--env.type={ENV_TYPE}", lambda text: say(
+                __name__, logging.WARNING, f"--env.type={ENV_TYPE}: {text}"))
 
     def _derived_features(self) -> dict[str, PolicyFeature]:
         """Raw env keys (channel-last images, as the env returns them) -> PolicyFeature; the
@@ -321,16 +321,6 @@ class LeRobotRolloutAdapter(gym.Wrapper):
     ) -> tuple[Any, dict[str, Any]]:
         kept = {k: v for k, v in (options or {}).items() if k != NEW_ROLLOUT_OPTION}
         return self.env.reset(seed=seed, options=kept or None)
-
-
-def _say(level: int, text: str) -> None:
-    """Log `text`; straight to stderr while logging is not set up for it (lerobot-train parses
-    its command line before it configures logging, which would drop an INFO line)."""
-    logger = logging.getLogger(__name__)
-    if logger.hasHandlers() and logger.isEnabledFor(logging.INFO):  # lerobot's init_logging
-        logger.log(level, text)
-    else:
-        print(f"{logging.getLevelName(level)} {text}", file=sys.stderr)
 
 
 def _make_wrapped_env(gym_id: str, disable_env_checker: bool,

@@ -396,7 +396,9 @@ def test_the_robot_takes_its_task_and_cameras_from_the_policy_on_the_line(
     features["observation.images.wrist"] = dict(features["observation.images.front"])
     (tmp_path / "w").mkdir()
     (tmp_path / "w" / "config.json").write_text(json.dumps(config))
-    (tmp_path / "w" / "so101_sim_train.json").write_text(json.dumps({"dataset_task": "stack"}))
+    stack_text = "Stack the red cube on top of the blue cube."
+    (tmp_path / "w" / "so101_sim_train.json").write_text(json.dumps(
+        {"dataset_task": "stack", "dataset_task_texts": [stack_text]}))
     monkeypatch.setattr(sys, "argv", ["lerobot-rollout", f"--policy.path={tmp_path / 'w'}"])
     robot = _robot(tmp_path)
     assert (robot.config.task, robot.config.camera_names) == ("stack", ["front", "side", "wrist"])
@@ -416,7 +418,13 @@ def test_the_robot_takes_its_task_and_cameras_from_the_policy_on_the_line(
     assert _robot(tmp_path, camera_names=["front", "side"]).config.camera_names == [
         "front", "side"]
     monkeypatch.setattr(sys, "argv", [*sys.argv, "--robot.task=lift"])
-    assert _robot(tmp_path, task="lift").config.task == "lift"
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        assert _robot(tmp_path, task="lift").config.task == "lift"
+    assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == [
+        "--robot.type=so101_sim: lift ('Pick up the red cube and hold it above the table.') is not "
+        f"a task {tmp_path / 'w'} was trained on (its demos: '{stack_text}'); expect a low "
+        "rate, or pass the --robot.task it learned"]
 
 
 def test_lerobot_replay_of_a_recording_takes_its_seed_and_task(tmp_path, monkeypatch, caplog):

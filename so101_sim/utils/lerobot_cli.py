@@ -11,6 +11,7 @@ commands, keeps Python's own report. Imports nothing heavy.
 
 from __future__ import annotations
 
+import logging
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -42,6 +43,17 @@ def config_errors(flags: str,
             print(f"{prog}: error: {flags}: {exc}", file=sys.stderr)
             setattr(exc, REPORTED, True)
         raise
+
+
+def say(logger_name: str, level: int, text: str) -> None:
+    """Log `text`; straight to stderr while logging is not set up for it: lerobot-train and
+    lerobot-rollout parse their command line (building our configs) before they configure
+    logging, which would drop an INFO line."""
+    logger = logging.getLogger(logger_name)
+    if logger.hasHandlers() and logger.isEnabledFor(logging.INFO):  # lerobot's init_logging
+        logger.log(level, text)
+    else:
+        print(f"{logging.getLevelName(level)} {text}", file=sys.stderr)
 
 
 def causes(exc: BaseException | None) -> Iterator[BaseException]:

@@ -7,6 +7,7 @@ config class ``XxxConfig`` of module ``lerobot_robot_so101_sim.config`` is turne
 
 from __future__ import annotations
 
+import logging
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,6 +17,7 @@ from lerobot.teleoperators.config import TeleoperatorConfig
 from lerobot.utils.constants import HF_LEROBOT_HOME
 
 from so101_sim.dataset_reads import DatasetReads
+from so101_sim.harness.trained_on import unseen_task_note
 from so101_sim.policy_frames import (
     PolicyReads,
     flag_value,
@@ -26,7 +28,7 @@ from so101_sim.policy_frames import (
 from so101_sim.tasks import load_task, loads_here
 from so101_sim.tasks.spec import ALL_CAMERAS
 from so101_sim.train.checkpoint import TASK_KEY, demos_of, train_image_size
-from so101_sim.utils.lerobot_cli import add_explainer, config_errors, one_line_errors
+from so101_sim.utils.lerobot_cli import add_explainer, config_errors, one_line_errors, say
 
 ROBOT_TYPE = "so101_sim"
 TELEOP_TYPE = "so101_sim_expert"
@@ -92,6 +94,9 @@ class SO101SimConfig(RobotConfig):
         if (isinstance(trained, str) and self.task == DEFAULT_TASK != trained
                 and flag_value(sys.argv, "--robot.task") is None and loads_here(trained)):
             self.task, self.task_by = trained, found[0]
+        elif found and (note := unseen_task_note(found[0], [self.task], "--robot.task")):
+            say(__name__, logging.WARNING,
+                f"--robot.type={ROBOT_TYPE}: {note.removeprefix('note: ')}")
         try:
             task = load_task(self.task)
         except ValueError as exc:
