@@ -199,10 +199,10 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         from it (an error for a camera a diffusion or ACT policy would miss): said while the
         command line is parsed, before any training."""
         if taken:
-            say(__name__, logging.INFO, f"--env.type={ENV_TYPE}: {', '.join(taken)}, as in dataset "
-                 f"{data.root}, so that the policy trained on it is evaluated on what it learns "
-                 "from (--env.task, --env.cameras, --env.image_height and --env.image_width "
-                 "choose others)")
+            say(__name__, logging.INFO,
+                f"--env.type={ENV_TYPE}: {', '.join(taken)}, as in dataset {data.root}, so that "
+                "the policy trained on it is evaluated on what it learns from (--env.task, "
+                "--env.cameras, --env.image_height and --env.image_width choose others)")
         cameras = [] if self.obs_type == "state" else self.cameras or list(spec.cameras)
         for problem in data.mismatches(sys.argv, self.task, cameras,
                                        (self.image_height, self.image_width)):
