@@ -461,6 +461,24 @@ def test_lerobot_replay_of_a_recording_takes_its_seed_and_task(tmp_path, monkeyp
     assert _robot(tmp_path, seed=7).config.seed == 7
 
 
+def test_recording_without_a_task_text_names_the_one_to_give(tmp_path, monkeypatch, caplog):
+    """lerobot-record (or -rollout into a dataset) with no --dataset.single_task stored an
+    empty task text on every frame, without a word; now one warning gives the task's own."""
+    monkeypatch.setattr(sys, "argv", ["lerobot-record", "--dataset.repo_id=local/x"])
+    with caplog.at_level("INFO"):
+        _robot(tmp_path, task="stack")
+    assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == [
+        "--robot.type=so101_sim: no --dataset.single_task, so every frame's task text is empty; "
+        "add --dataset.single_task=\"Stack the red cube on top of the blue cube.\" (task stack)"]
+    caplog.clear()
+    for argv in (["lerobot-record", "--dataset.repo_id=local/x", "--dataset.single_task=Stack"],
+                 ["lerobot-teleoperate"], ["lerobot-rollout", "--strategy.type=base"]):
+        monkeypatch.setattr(sys, "argv", argv)
+        with caplog.at_level("INFO"):
+            _robot(tmp_path)
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+
+
 def test_the_expert_finds_its_robot_by_id(tmp_path):
     """Two sim robots in one process: the expert needs --teleop.robot_id, an unknown id names
     the connected ones, and a second robot with a taken id is refused without unregistering

@@ -28,7 +28,13 @@ from so101_sim.policy_frames import (
 from so101_sim.tasks import load_task, loads_here
 from so101_sim.tasks.spec import ALL_CAMERAS
 from so101_sim.train.checkpoint import TASK_KEY, demos_of, train_image_size
-from so101_sim.utils.lerobot_cli import add_explainer, config_errors, one_line_errors, say
+from so101_sim.utils.lerobot_cli import (
+    add_explainer,
+    command_name,
+    config_errors,
+    one_line_errors,
+    say,
+)
 
 ROBOT_TYPE = "so101_sim"
 TELEOP_TYPE = "so101_sim_expert"
@@ -138,6 +144,14 @@ class SO101SimConfig(RobotConfig):
         self.sized_by: Path | None = None  # the policy whose input size the images took
         if self.image_size == DEFAULT_IMAGE and render == (0, 0):
             self._size_for_policy(names)
+        if (command_name(sys.argv[0] if sys.argv else "") in ("lerobot-record", "lerobot-rollout")
+                and flag_value(sys.argv, "--dataset.repo_id") is not None
+                and flag_value(sys.argv, "--dataset.single_task") is None):
+            # lerobot then stores an empty task text: nothing for a language-conditioned policy,
+            # and so101-sim train cannot tell which task the demos are of
+            say(__name__, logging.WARNING, f"--robot.type={ROBOT_TYPE}: no "
+                "--dataset.single_task, so every frame's task text is empty; add "
+                f"--dataset.single_task=\"{task.description}\" (task {task.name})")
 
     def _size_for_policy(self, cameras: tuple[str, ...]) -> None:
         """The frames the command line's policy takes: lerobot hands it the robot's as they
