@@ -129,9 +129,10 @@ class SO101PickPlaceEnvConfig(EnvConfig):
                 raise ValueError(f"cameras={self.cameras!r} is invalid; expected distinct names "
                                  f"from {', '.join(ALL_CAMERAS)}, e.g. "
                                  "--env.cameras='[front,side,wrist]'") from None
-        data = DatasetReads.of(sys.argv, HF_LEROBOT_HOME)  # lerobot-train's, if local
-        self._adopted_from = self._cameras_from = self._task_from = None
-        taken = self._take_task(data)
+        found = policy_path(sys.argv)  # lerobot-eval's policy: it decides, as a dataset does
+        demos = demos_of(found[0]) if found else {}  # for lerobot-train's, reads the dataset
+        data = DatasetReads.of(sys.argv, HF_LEROBOT_HOME)  # lerobot-train's (None with a policy)
+        taken = self._take_task(demos.get(TASK_KEY) if found else data.task if data else None)
         spec = load_task(self.task)
         if self.obs_type != "state":
             # lerobot-eval and lerobot-train's evaluation hand the policy these frames as they
@@ -139,12 +140,15 @@ class SO101PickPlaceEnvConfig(EnvConfig):
             # for any policy trained on other ones
             taken += self._take_cameras(spec.cameras, data)
             if (self.image_height, self.image_width) == DEFAULT_FRAME:
-                found = policy_frame_size(sys.argv, self.cameras or spec.cameras)
-                size = found[0] if found else data.frame_size(sys.argv) if data else None
+                sized = policy_frame_size(sys.argv, self.cameras or spec.cameras)
+                size = sized[0] if sized else data.frame_size(sys.argv) if data else None
                 if size is not None and size != DEFAULT_FRAME:
                     self.image_height, self.image_width = size
-                    self._adopted_from = found[1] if found else None
-                    taken += [] if found else [f"{size[0]}x{size[1]} frames"]
+                    taken.append(f"{size[0]}x{size[1]} frames")
+        # what came from the policy is said when the envs are built, with this note
+        self._policy, self._policy_took = (found[0], taken) if found else (None, [])
+        self._unseen_task = (unseen_task_note(found[0], [self.task], "--env.task", demos)
+                             if found else None)
         if data is not None:
             self._tell_dataset(data, taken, spec)
         elif problem := fine_tune_problem(sys.argv, HF_LEROBOT_HOME):
@@ -161,21 +165,15 @@ class SO101PickPlaceEnvConfig(EnvConfig):
                              f"expected 1..{spec.max_steps} (raise max_steps in the task file)")
         self.features = self._derived_features()
 
-    def _take_task(self, data: DatasetReads | None) -> list[str]:
-        """Where the line names no task: that of the demos of its local policy folder (as
-        ``so101-sim eval`` does), else of lerobot-train's dataset, if it loads here."""
-        found = policy_path(sys.argv)
-        task = (demos_of(found[0]).get(TASK_KEY) if found else
-                data.task if data is not None else None)
+    def _take_task(self, task: str | None) -> list[str]:
+        """`task` (of the demos of the line's policy folder, as ``so101-sim eval`` takes, else
+        of lerobot-train's dataset) where the line names none, if it loads here."""
         if (not isinstance(task, str) or self.task != DEFAULT_TASK or task == self.task
                 or flag_value(sys.argv, "--env.task") is not None):
             return []  # a task chosen on the line, or in Python (hub_env's SO101_TASK)
         if not loads_here(task):
             return []  # a task file that moved: the dataset's warning says which it was
         self.task = task
-        if found:  # said when the envs are built, as the frame size is
-            self._task_from = found[0]
-            return []
         return [f"task {task}"]
 
     def _take_cameras(self, task_cameras: tuple[str, ...], data: DatasetReads | None
@@ -189,9 +187,6 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         if not wanted or wanted == task_cameras or not set(wanted) <= set(ALL_CAMERAS):
             return []
         self.cameras = list(wanted)
-        if reads:  # said when the envs are built, as the frame size is
-            self._cameras_from = reads.policy
-            return []
         return [f"cameras {', '.join(wanted)}"]
 
     def _tell_dataset(self, data: DatasetReads, taken: list[str], spec: Any) -> None:
@@ -258,10 +253,12 @@ class SO101PickPlaceEnvConfig(EnvConfig):
             raise ValueError(f"n_envs={n_envs} is invalid; expected at least 1")
         cameras = [k.split("/", 1)[1] for k in self.features if k.startswith("pixels/")]
         self._check_inputs(cameras)
-        if line := self._policy_line(cameras):
-            logging.getLogger(__name__).info("--env.type=%s: %s", ENV_TYPE, line)
-        found = policy_path(sys.argv)
-        if found and (note := unseen_task_note(found[0], [self.task], "--env.task")):
+        if took := getattr(self, "_policy_took", None):
+            logging.getLogger(__name__).info(
+                "--env.type=%s: %s, as %s was trained on (lerobot-eval hands the policy the "
+                "frames as they are; --env.task, --env.cameras, --env.image_height and "
+                "--env.image_width choose others)", ENV_TYPE, ", ".join(took), self._policy)
+        if note := getattr(self, "_unseen_task", None):
             logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE,
                                                 note.removeprefix("note: "))
         warning = size_warning(sys.argv, (self.image_height, self.image_width), cameras, "--env")
@@ -278,19 +275,6 @@ class SO101PickPlaceEnvConfig(EnvConfig):
             vec = gym.vector.SyncVectorEnv(
                 [make_one] * n_envs, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
         return {self.type: {0: vec}}
-
-    def _policy_line(self, cameras: list[str]) -> str | None:
-        """What the envs took from the command line's policy folder, in one line (or None)."""
-        taken = [text for source, text in (
-            (getattr(self, "_task_from", None), f"task {self.task}"),
-            (getattr(self, "_cameras_from", None), f"cameras {', '.join(cameras)}"),
-            (getattr(self, "_adopted_from", None),
-             f"{self.image_height}x{self.image_width} frames")) if source is not None]
-        policy = next((p for p in (getattr(self, name, None) for name in (
-            "_task_from", "_cameras_from", "_adopted_from")) if p is not None), None)
-        return (f"{', '.join(taken)}, as {policy} was trained on (lerobot-eval hands the policy "
-                "the frames as they are; --env.task, --env.cameras, --env.image_height and "
-                "--env.image_width choose others)") if taken else None
 
     def _check_inputs(self, cameras: list[str]) -> None:
         """Refuse (or warn, for a policy type that does without) a policy on the command line

@@ -50,11 +50,12 @@ def default_task(policy: str, fallback: str) -> str:
 
 
 def unseen_task_note(checkpoint: str | Path, tasks: Sequence[str | Path],
-                     flag: str = "--task") -> str | None:
+                     flag: str = "--task", demos: dict[str, Any] | None = None) -> str | None:
     """One line naming the `tasks` whose text is not among those of the checkpoint's demos
     (None if every one is, or the checkpoint does not say); `flag` is the command's task
-    option (lerobot-eval's is --env.task)."""
-    texts = _info(checkpoint).get(TEXTS_KEY)
+    option (lerobot-eval's is --env.task); `demos`: ``demos_of(checkpoint)`` if read already
+    (for a lerobot-train checkpoint it reads the dataset)."""
+    texts = (_info(checkpoint) if demos is None else demos).get(TEXTS_KEY)
     if not isinstance(texts, list) or not texts:
         return None
     unseen = [spec for spec in map(load_task, tasks) if spec.description not in texts]

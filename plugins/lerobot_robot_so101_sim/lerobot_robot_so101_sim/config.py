@@ -96,11 +96,12 @@ class SO101SimConfig(RobotConfig):
         if data is not None and episode.isdigit():
             self._take_replayed(data, int(episode))
         found = policy_path(sys.argv)
-        trained = demos_of(found[0]).get(TASK_KEY) if found else None
+        demos = demos_of(found[0]) if found else {}  # for lerobot-train's, reads the dataset
+        trained = demos.get(TASK_KEY)
         if (isinstance(trained, str) and self.task == DEFAULT_TASK != trained
                 and flag_value(sys.argv, "--robot.task") is None and loads_here(trained)):
             self.task, self.task_by = trained, found[0]
-        elif found and (note := unseen_task_note(found[0], [self.task], "--robot.task")):
+        elif found and (note := unseen_task_note(found[0], [self.task], "--robot.task", demos)):
             say(__name__, logging.WARNING,
                 f"--robot.type={ROBOT_TYPE}: {note.removeprefix('note: ')}")
         try:
