@@ -254,16 +254,15 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         cameras = [k.split("/", 1)[1] for k in self.features if k.startswith("pixels/")]
         self._check_inputs(cameras)
         if took := getattr(self, "_policy_took", None):
-            logging.getLogger(__name__).info(
-                "--env.type=%s: %s, as %s was trained on (lerobot-eval hands the policy the "
-                "frames as they are; --env.task, --env.cameras, --env.image_height and "
-                "--env.image_width choose others)", ENV_TYPE, ", ".join(took), self._policy)
+            self._say_once(logging.INFO, f"{', '.join(took)}, as {self._policy} was trained on "
+                           "(lerobot-eval hands the policy the frames as they are; --env.task, "
+                           "--env.cameras, --env.image_height and --env.image_width choose "
+                           "others)")
         if note := getattr(self, "_unseen_task", None):
-            logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE,
-                                                note.removeprefix("note: "))
+            self._say_once(logging.WARNING, note.removeprefix("note: "))
         warning = size_warning(sys.argv, (self.image_height, self.image_width), cameras, "--env")
         if warning:  # lerobot-eval hands the policy these frames as they are
-            logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE, warning)
+            self._say_once(logging.WARNING, warning)
         make_one = partial(_make_wrapped_env, self.gym_id, self.disable_env_checker,
                            self.gym_kwargs)
         if use_async_envs and n_envs > 1:
@@ -279,11 +278,16 @@ class SO101PickPlaceEnvConfig(EnvConfig):
     def _check_inputs(self, cameras: list[str]) -> None:
         """Refuse (or warn, for a policy type that does without) a policy on the command line
         that reads an input these envs do not send, before any env is built."""
-        def warn(text: str) -> None:
-            logging.getLogger(__name__).warning("--env.type=%s: %s", ENV_TYPE, text)
-
         refuse_or_warn(env_input_problem(sys.argv, cameras, self.obs_type),
-                       f"--env.type={ENV_TYPE}", warn)
+                       f"--env.type={ENV_TYPE}", partial(self._say_once, logging.WARNING))
+
+    def _say_once(self, level: int, text: str) -> None:
+        """Log `text` the first time these envs are built: lerobot-train builds them again
+        at every evaluation, and the line would not change."""
+        said = self.__dict__.setdefault("_said", set())
+        if text not in said:
+            said.add(text)
+            logging.getLogger(__name__).log(level, "--env.type=%s: %s", ENV_TYPE, text)
 
 
 class LeRobotRolloutAdapter(gym.Wrapper):
