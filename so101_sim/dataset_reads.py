@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from so101_sim.dataset.reader import read_frames
+from so101_sim.dataset.robot_episodes import read_robot_episodes
 from so101_sim.dataset.store import SIDECAR
 from so101_sim.policy_frames import (
     EVERY_CAMERA_TYPES,
@@ -45,8 +46,9 @@ def _frame_size(feature: dict) -> tuple[int, int]:
 
 @dataclass(frozen=True)
 class DatasetReads:
-    """A local dataset named on a lerobot command line: its so101-sim task (None for a dataset
-    without the recording sidecar, e.g. one lerobot-record wrote) and its cameras' frame sizes
+    """A local dataset named on a lerobot command line: its so101-sim task (from the recording
+    sidecar of so101-sim record, else from the sim robot's note of the episodes lerobot-record
+    saved when they share one task; None for any other dataset) and its cameras' frame sizes
     in ``meta/info.json`` order."""
 
     root: Path
@@ -80,15 +82,18 @@ class DatasetReads:
                     if side.is_file() else None)
         except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError):
             return None
+        if not side.is_file():
+            tasks = {line["task"] for line in read_robot_episodes(path).values()}
+            task = tasks.pop() if len(tasks) == 1 else None
         return cls(path, task if isinstance(task, str) else None, sizes)
 
     def episode_seed(self, episode: int) -> int | None:
-        """The reset seed of dataset episode `episode` (None for a dataset without the
-        ``episode_seed`` column so101-sim record writes, or without that episode)."""
+        """The reset seed of dataset episode `episode`: from the ``episode_seed`` column
+        so101-sim record writes, else from the sim robot's note (None: neither has it)."""
         try:
             rows = read_frames(self.root, ["episode_index", "episode_seed"])
         except (OSError, ValueError, KeyError):
-            return None
+            return read_robot_episodes(self.root).get(episode, {}).get("seed")
         seeds = rows.loc[rows["episode_index"] == episode, "episode_seed"]
         return int(np.asarray(seeds.iloc[0]).reshape(-1)[0]) if len(seeds) else None
 

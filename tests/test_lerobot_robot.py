@@ -461,6 +461,32 @@ def test_lerobot_replay_of_a_recording_takes_its_seed_and_task(tmp_path, monkeyp
     assert _robot(tmp_path, seed=7).config.seed == 7
 
 
+def test_the_robots_note_of_dataset_episodes_is_read_as_data(tmp_path, caplog):
+    """The seed and task the robot keeps for each saved dataset episode: appended on lerobot's
+    save (not for a dataset without a root), read back with torn or ill-typed lines skipped and
+    a later line for an episode winning; a folder that cannot take the file is one warning."""
+    from lerobot_robot_so101_sim.dataset_events import note_saved_episode
+
+    from so101_sim.dataset import ROBOT_EPISODES, read_robot_episodes
+
+    line = {"dataset_episode": 0, "seed": 4, "task": "stack", "success": True}
+    note_saved_episode(SimpleNamespace(num_episodes=1), line)  # no root: nothing to write
+    note_saved_episode(SimpleNamespace(root=tmp_path), {**line, "dataset_episode": None})
+    assert not (tmp_path / ROBOT_EPISODES).exists()
+    note_saved_episode(SimpleNamespace(root=tmp_path), line)
+    with open(tmp_path / ROBOT_EPISODES, "a", encoding="utf-8") as f:
+        f.write('{"dataset_episode": 1, "seed": "9", "task": "stack"}\n[1, 2]\n')
+        f.write('{"dataset_episode": 0, "seed": 6, "task": "stack"}\n{"dataset_episode": 2, "se')
+    assert {e: v["seed"] for e, v in read_robot_episodes(tmp_path).items()} == {0: 6}
+    assert read_robot_episodes(tmp_path / "none") == {}
+    with caplog.at_level("WARNING"):
+        note_saved_episode(SimpleNamespace(root=tmp_path / "missing"), line)
+    assert [r.getMessage() for r in caplog.records] == [
+        f"so101_sim: could not write {ROBOT_EPISODES} in {tmp_path / 'missing'} ([Errno 2] No "
+        f"such file or directory: '{tmp_path / 'missing' / ROBOT_EPISODES}'); lerobot-replay of "
+        "dataset episode 0 needs --robot.seed=4 --robot.task=stack"]
+
+
 def test_recording_without_a_task_text_names_the_one_to_give(tmp_path, monkeypatch, caplog):
     """lerobot-record (or -rollout into a dataset) with no --dataset.single_task stored an
     empty task text on every frame, without a word; now one warning gives the task's own."""
@@ -542,10 +568,15 @@ def test_agreement_pairs_seeds_with_an_eval_folder(tmp_path, capsys):
 @pytest.mark.slow
 def test_lerobot_record_with_the_expert_then_train_and_replay(tmp_path):
     """lerobot-record writes one dataset episode per seed, each a success (the expert solves
-    seeds 0 and 1); so101-sim's trainer reads it; lerobot-replay re-runs episode 1 exactly."""
+    seeds 0 and 1); so101-sim's trainer reads it; lerobot-replay re-runs episode 1 exactly.
+    lerobot's files keep no seed, so the robot notes each saved episode's seed and task in the
+    dataset, and the replay takes them: before, it needed --robot.seed=1 by hand, and without
+    it replayed episode 1's actions on seed 0."""
     from lerobot.datasets import LeRobotDataset
 
+    from so101_sim.dataset import read_robot_episodes
     from so101_sim.dataset.reader import open_lerobot_dataset
+    from so101_sim.dataset_reads import DatasetReads
     from so101_sim.train.presets import load_preset
     from so101_sim.train.trainer import load_demos
 
@@ -564,6 +595,12 @@ def test_lerobot_record_with_the_expert_then_train_and_replay(tmp_path):
     assert [(r["seed"], r["success"], r["dataset_episode"]) for r in recorded] == \
         [(0, True, 0), (1, True, 1)]
 
+    noted = read_robot_episodes(root)
+    assert [(e, noted[e]["seed"], noted[e]["task"]) for e in sorted(noted)] == \
+        [(0, 0, "pick_place"), (1, 1, "pick_place")]
+    reads = DatasetReads.at(["lerobot-replay", f"--dataset.root={root}"], None)
+    assert (reads.task, reads.episode_seed(1)) == ("pick_place", 1)
+
     ds = LeRobotDataset("local/so101_sim_demos", root=root)
     assert ds.num_episodes == 2 and ds.meta.robot_type == "so101_sim"
     assert tuple(ds.meta.features["observation.images.front"]["shape"]) == (H, W, 3)
@@ -574,12 +611,13 @@ def test_lerobot_record_with_the_expert_then_train_and_replay(tmp_path):
         {f"observation.images.{c}": (3, 60, 80) for c in ("front", "side")}
 
     replayed = tmp_path / "replay.jsonl"
-    run = _run([BIN / "lerobot-replay", "--robot.type=so101_sim", "--robot.seed=1",
+    run = _run([BIN / "lerobot-replay", "--robot.type=so101_sim",
                 "--robot.episode_end=hold", f"--robot.image_height={H}",
                 f"--robot.image_width={W}", f"--robot.outcomes_path={replayed}",
                 "--dataset.repo_id=local/so101_sim_demos", f"--dataset.root={root}",
                 "--dataset.episode=1", "--play_sounds=false"], tmp_path)
     assert run.returncode == 0, run.stderr[-3000:]
+    assert f"seed 1 of episode 1 of dataset {root} (--robot.seed chooses others)" in run.stderr
     (again,) = _outcomes(replayed)
     assert (again["seed"], again["success"], again["steps"]) == (1, True, recorded[1]["steps"])
 

@@ -9,6 +9,11 @@ from so101_sim.dataset.reader import (
     read_frames,
     stored_seeds,
 )
+from so101_sim.dataset.robot_episodes import (
+    ROBOT_EPISODES,
+    append_robot_episode,
+    read_robot_episodes,
+)
 from so101_sim.dataset.schema import (
     CAMERAS,
     DEFAULT_REPO_ID,
@@ -23,7 +28,8 @@ from so101_sim.dataset.schema import (
 )
 from so101_sim.dataset.store import SIDECAR, read_sidecar
 
-__all__ = ["CAMERAS", "DEFAULT_REPO_ID", "DEFAULT_VCODEC", "EVAL_SEED_START", "ROBOT_TYPE",
-           "SIDECAR", "VCODECS", "VIDEO_KEYS", "NotADatasetError", "check_seed_range",
-           "check_video_size", "dataset_features", "info_features", "open_lerobot_dataset",
-           "read_frames", "read_sidecar", "stored_seeds"]
+__all__ = ["CAMERAS", "DEFAULT_REPO_ID", "DEFAULT_VCODEC", "EVAL_SEED_START", "ROBOT_EPISODES",
+           "ROBOT_TYPE", "SIDECAR", "VCODECS", "VIDEO_KEYS", "NotADatasetError",
+           "append_robot_episode", "check_seed_range", "check_video_size", "dataset_features",
+           "info_features", "open_lerobot_dataset", "read_frames", "read_robot_episodes",
+           "read_sidecar", "stored_seeds"]

@@ -5,15 +5,20 @@ robot; the only calls that mark an episode are the dataset's. While a sim robot 
 ``LeRobotDataset.add_frame``, ``save_episode`` and ``clear_episode_buffer`` are wrapped so that,
 after lerobot's own method has run, every connected sim robot hears of it (``"frame"``,
 ``"saved"``, ``"discarded"``). The wrappers call the original first and change nothing else;
-the last robot to disconnect puts the originals back.
+the last robot to disconnect puts the originals back. On a save the robot also notes the
+episode's seed and task in the dataset (``note_saved_episode``).
 """
 
 from __future__ import annotations
 
 import functools
+import logging
 import threading
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, Protocol
+
+from so101_sim.dataset import ROBOT_EPISODES, append_robot_episode
 
 EVENTS = {"add_frame": "frame", "save_episode": "saved", "clear_episode_buffer": "discarded"}
 _ORIGINAL = "__so101_sim_original__"  # attribute of a wrapper: the method it wraps
@@ -41,6 +46,23 @@ def unwatch_datasets(listener: DatasetListener) -> None:
             _listeners.remove(listener)
         if not _listeners:
             _uninstall()
+
+
+def note_saved_episode(dataset: Any, line: dict[str, Any]) -> None:
+    """Keep the seed and task of a saved dataset episode in the dataset's root
+    (``so101_sim.dataset.robot_episodes``): lerobot's files do not, and lerobot-replay of the
+    episode needs them. A dataset that cannot take the file is recorded as it is, with a
+    warning."""
+    root = getattr(dataset, "root", None)
+    if root is None or line.get("dataset_episode") is None:
+        return
+    try:
+        append_robot_episode(Path(root), line)
+    except OSError as exc:
+        logging.getLogger(__name__).warning(
+            "so101_sim: could not write %s in %s (%s); lerobot-replay of dataset episode %d "
+            "needs --robot.seed=%d --robot.task=%s", ROBOT_EPISODES, root, exc,
+            line["dataset_episode"], line["seed"], line["task"])
 
 
 def _dataset_class() -> type:

@@ -30,7 +30,11 @@ from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnected
 
 from lerobot_robot_so101_sim import registry
 from lerobot_robot_so101_sim.config import ROBOT_TYPE, SO101SimConfig
-from lerobot_robot_so101_sim.dataset_events import unwatch_datasets, watch_datasets
+from lerobot_robot_so101_sim.dataset_events import (
+    note_saved_episode,
+    unwatch_datasets,
+    watch_datasets,
+)
 from so101_sim.policy_frames import refuse_or_warn, robot_input_problem, size_warning
 from so101_sim.tasks import load_task
 from so101_sim.utils.units import FEATURE_NAMES
@@ -325,6 +329,8 @@ class SO101Sim(Robot):
                 seed = ep.seed
                 logger.info("so101_sim: dataset episode discarded; seed %d runs again", seed)
             self._settle(ep)
+            if event == "saved":
+                note_saved_episode(dataset, ep.outcome)
             self._start_episode(seed)
             self._check_count()
         self._maybe_stop()
