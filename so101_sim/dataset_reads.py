@@ -23,9 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from so101_sim.dataset.reader import read_frames
+from so101_sim.dataset.reader import read_frames, recorded_task
 from so101_sim.dataset.robot_episodes import read_robot_episodes
-from so101_sim.dataset.store import SIDECAR
 from so101_sim.policy_frames import (
     EVERY_CAMERA_TYPES,
     InputProblem,
@@ -77,15 +76,10 @@ class DatasetReads:
             sizes = {key[len(IMAGE_PREFIX):]: _frame_size(f)
                      for key, f in features["features"].items()
                      if key.startswith(IMAGE_PREFIX) and f.get("dtype") in ("video", "image")}
-            side = path / SIDECAR
-            task = (json.loads(side.read_text(encoding="utf-8")).get("task")
-                    if side.is_file() else None)
+            task = recorded_task(path)
         except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError):
             return None
-        if not side.is_file():
-            tasks = {line["task"] for line in read_robot_episodes(path).values()}
-            task = tasks.pop() if len(tasks) == 1 else None
-        return cls(path, task if isinstance(task, str) else None, sizes)
+        return cls(path, task, sizes)
 
     def episode_seed(self, episode: int) -> int | None:
         """The reset seed of dataset episode `episode`: from the ``episode_seed`` column

@@ -574,9 +574,10 @@ def test_lerobot_record_with_the_expert_then_train_and_replay(tmp_path):
     it replayed episode 1's actions on seed 0."""
     from lerobot.datasets import LeRobotDataset
 
-    from so101_sim.dataset import read_robot_episodes
+    from so101_sim.dataset import read_robot_episodes, recorded_seeds, recorded_task
     from so101_sim.dataset.reader import open_lerobot_dataset
     from so101_sim.dataset_reads import DatasetReads
+    from so101_sim.train.checkpoint import demos_info
     from so101_sim.train.presets import load_preset
     from so101_sim.train.trainer import load_demos
 
@@ -603,6 +604,11 @@ def test_lerobot_record_with_the_expert_then_train_and_replay(tmp_path):
 
     ds = LeRobotDataset("local/so101_sim_demos", root=root)
     assert ds.num_episodes == 2 and ds.meta.robot_type == "so101_sim"
+    # what a policy trained on it records of its demos: the task (pick_place's text alone
+    # names three tasks of the suite) and no evaluation seed among them
+    assert (recorded_task(root), recorded_seeds(root)) == ("pick_place", [0, 1])
+    demos = demos_info(recorded_task(root), ds.meta.tasks.index, recorded_seeds(root))
+    assert (demos["dataset_task"], demos["dataset_eval_seeds"]) == ("pick_place", [])
     assert tuple(ds.meta.features["observation.images.front"]["shape"]) == (H, W, 3)
     assert ds.meta.features["action"]["names"] == list(FEATURE_NAMES)
     demos = load_demos(open_lerobot_dataset(root), load_preset("cpu"), None)

@@ -124,7 +124,7 @@ def test_an_unmeasured_card_names_the_task_of_the_demos() -> None:
 def test_train_records_the_evaluation_seeds_among_its_demos(tmp_path: Path) -> None:
     from so101_sim.train.checkpoint import demos_info, eval_seeds_note
 
-    info = demos_info({"task": "lift"}, ["b", "a"],
+    info = demos_info("lift", ["b", "a"],
                       [3, 100003, 0, 100000, 100001, 100009, 100010, 100012])
     assert info == {"dataset_task": "lift", "dataset_task_texts": ["a", "b"],
                     "dataset_eval_seeds": [[100000, 100001], [100003, 100003],
@@ -134,14 +134,14 @@ def test_train_records_the_evaluation_seeds_among_its_demos(tmp_path: Path) -> N
         "100003, 100009..100010, 100012), e.g. rollouts of `eval --save-rollouts`; eval will "
         "refuse to measure this policy on them (its own training episodes): evaluate it with "
         "--seed-start above 100012")
-    recorded = demos_info({}, [], list(range(50)))  # record's demos: training seeds only
+    recorded = demos_info(None, [], list(range(50)))  # record's demos: training seeds only
     assert recorded["dataset_eval_seeds"] == [] and eval_seeds_note(tmp_path, recorded) is None
-    assert demos_info({}, [], None)["dataset_eval_seeds"] == []  # a dataset without seeds
+    assert demos_info(None, [], None)["dataset_eval_seeds"] == []  # a dataset without seeds
     # no sidecar (e.g. after lerobot-edit-dataset): a text only one task has names it
     lift = load_task("lift").description
-    assert demos_info({}, [lift], None)["dataset_task"] == "lift"
-    assert demos_info({}, [load_task("pick_place").description], None)["dataset_task"] is None
-    assert demos_info({}, [lift, STACK], None)["dataset_task"] is None  # a merge of several
+    assert demos_info(None, [lift], None)["dataset_task"] == "lift"
+    assert demos_info(None, [load_task("pick_place").description], None)["dataset_task"] is None
+    assert demos_info(None, [lift, STACK], None)["dataset_task"] is None  # a merge of several
 
 
 def test_eval_refuses_the_seeds_of_its_own_training_rollouts() -> None:

@@ -7,6 +7,8 @@ from so101_sim.dataset.reader import (
     info_features,
     open_lerobot_dataset,
     read_frames,
+    recorded_seeds,
+    recorded_task,
     stored_seeds,
 )
 from so101_sim.dataset.robot_episodes import (
@@ -32,4 +34,4 @@ __all__ = ["CAMERAS", "DEFAULT_REPO_ID", "DEFAULT_VCODEC", "EVAL_SEED_START", "R
            "ROBOT_TYPE", "SIDECAR", "VCODECS", "VIDEO_KEYS", "NotADatasetError",
            "append_robot_episode", "check_seed_range", "check_video_size", "dataset_features",
            "info_features", "open_lerobot_dataset", "read_frames", "read_robot_episodes",
-           "read_sidecar", "stored_seeds"]
+           "read_sidecar", "recorded_seeds", "recorded_task", "stored_seeds"]

@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from so101_sim.dataset.robot_episodes import noted_seeds, noted_task
+from so101_sim.dataset.store import read_sidecar
 from so101_sim.utils.paths import hub_id_hint
 
 
@@ -44,6 +46,21 @@ def stored_seeds(root: str | Path) -> list[int]:
         return []
     first = df.groupby("episode_index")["episode_seed"].first()
     return [int(np.asarray(v).reshape(-1)[0]) for v in first.sort_index()]
+
+
+def recorded_task(root: str | Path) -> str | None:
+    """The so101-sim task a dataset's episodes ran: from so101-sim record's sidecar, else from
+    the sim robot's notes under lerobot-record (None: neither says one task)."""
+    task = read_sidecar(Path(root)).get("task")
+    return task if isinstance(task, str) else noted_task(Path(root))
+
+
+def recorded_seeds(root: str | Path) -> list[int] | None:
+    """Each episode's reset seed in episode order: the ``episode_seed`` column so101-sim record
+    writes, else the sim robot's notes (None: neither)."""
+    if "episode_seed" in info_features(Path(root)):
+        return stored_seeds(root)
+    return noted_seeds(Path(root))
 
 
 def open_lerobot_dataset(path: str | Path, flag: str = "--dataset",

@@ -15,7 +15,8 @@ import json
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ROBOT_EPISODES", "append_robot_episode", "read_robot_episodes"]
+__all__ = ["ROBOT_EPISODES", "append_robot_episode", "noted_seeds", "noted_task",
+           "read_robot_episodes"]
 
 ROBOT_EPISODES = "so101_sim_robot_episodes.jsonl"
 
@@ -46,3 +47,15 @@ def read_robot_episodes(root: Path) -> dict[int, dict[str, Any]]:
                 and isinstance(task, str)):
             found[episode] = line
     return found
+
+
+def noted_task(root: Path) -> str | None:
+    """The one task of the noted episodes (None: no notes, or episodes of several tasks)."""
+    tasks = {line["task"] for line in read_robot_episodes(root).values()}
+    return tasks.pop() if len(tasks) == 1 else None
+
+
+def noted_seeds(root: Path) -> list[int] | None:
+    """The noted episodes' seeds in dataset-episode order (None: no notes)."""
+    notes = read_robot_episodes(root)
+    return [notes[e]["seed"] for e in sorted(notes)] if notes else None

@@ -16,9 +16,8 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from so101_sim.dataset.reader import stored_seeds
+from so101_sim.dataset.reader import recorded_seeds, recorded_task
 from so101_sim.dataset.schema import EVAL_SEED_START
-from so101_sim.dataset.store import read_sidecar
 from so101_sim.tasks import available_tasks, load_task
 from so101_sim.train.presets import config_class
 from so101_sim.train.widen import widen_conditioning, widen_keypoints
@@ -202,12 +201,11 @@ def train_image_size(path: Path) -> tuple[int, int] | None:
     return h, w
 
 
-def demos_info(dataset_sidecar: dict[str, Any], task_texts: Any,
-               seeds: list[int] | None) -> dict[str, Any]:
-    """The keys above for a dataset: its sidecar, lerobot's task index (``meta.tasks.index``)
-    and its episodes' seeds (None for a dataset without ``episode_seed``). Without a sidecar
-    (a dataset lerobot's tools rewrote), one text that names one task of the suite is that
-    task."""
+def demos_info(task: str | None, task_texts: Any, seeds: list[int] | None) -> dict[str, Any]:
+    """The keys above for a dataset: the task it records (``dataset.recorded_task``), lerobot's
+    task index (``meta.tasks.index``) and its episodes' seeds (``dataset.recorded_seeds``).
+    Without a recorded task (a dataset lerobot's tools rewrote), one text that names one task
+    of the suite is that task."""
     ranges: list[list[int]] = []
     for s in sorted(s for s in seeds or () if s >= EVAL_SEED_START):
         if ranges and s <= ranges[-1][1] + 1:
@@ -215,7 +213,6 @@ def demos_info(dataset_sidecar: dict[str, Any], task_texts: Any,
         else:
             ranges.append([s, s])
     texts = sorted(str(t) for t in task_texts)
-    task = dataset_sidecar.get("task")
     if task is None and len(texts) == 1:
         named = [n for n in available_tasks() if load_task(n).description == texts[0]]
         task = named[0] if len(named) == 1 else None  # pick_place's variants share a text
@@ -241,7 +238,7 @@ def _lerobot_train_demos(path: Path) -> dict[str, Any]:
         data = Path(root).expanduser() if isinstance(root, str) else None  # cwd-relative
         if data is not None and (data / "meta" / "info.json").is_file():
             texts = pd.read_parquet(data / "meta" / "tasks.parquet").index
-            return demos_info(read_sidecar(data), texts, stored_seeds(data))
+            return demos_info(recorded_task(data), texts, recorded_seeds(data))
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return {}
     task = env.get("task") if env.get("type") == "so101_pick_place" else None

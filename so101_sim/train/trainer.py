@@ -35,8 +35,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from so101_sim.dataset.reader import NotADatasetError, open_lerobot_dataset, stored_seeds
-from so101_sim.dataset.store import read_sidecar
+from so101_sim.dataset import recorded_seeds, recorded_task
+from so101_sim.dataset.reader import NotADatasetError, open_lerobot_dataset
 from so101_sim.train.augment import FrameAugmenter
 from so101_sim.train.checkpoint import demos_info, eval_seeds_note, init_weights_from
 from so101_sim.train.demos import (
@@ -250,9 +250,8 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     info = {"preset": preset.name, "preset_file": str(preset.path), "dataset": str(dataset_dir),
             "dataset_episodes": dataset.meta.total_episodes,
             "dataset_frames": dataset.meta.total_frames,
-            **demos_info(read_sidecar(dataset_dir), dataset.meta.tasks.index,
-                         stored_seeds(dataset_dir)
-                         if "episode_seed" in dataset.meta.features else None),
+            **demos_info(recorded_task(dataset_dir), dataset.meta.tasks.index,
+                         recorded_seeds(dataset_dir)),
             "dataset_image_size": list(dataset.meta.features[dataset.meta.video_keys[0]]
                                        ["shape"][:2]),
             "policy_image_size": list(preset.image_size),
