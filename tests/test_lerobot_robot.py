@@ -577,6 +577,7 @@ def test_lerobot_record_with_the_expert_then_train_and_replay(tmp_path):
     from so101_sim.dataset import read_robot_episodes, recorded_seeds, recorded_task
     from so101_sim.dataset.reader import open_lerobot_dataset
     from so101_sim.dataset_reads import DatasetReads
+    from so101_sim.record import replay
     from so101_sim.train.checkpoint import demos_info
     from so101_sim.train.presets import load_preset
     from so101_sim.train.trainer import load_demos
@@ -609,6 +610,8 @@ def test_lerobot_record_with_the_expert_then_train_and_replay(tmp_path):
     assert (recorded_task(root), recorded_seeds(root)) == ("pick_place", [0, 1])
     demos = demos_info(recorded_task(root), ds.meta.tasks.index, recorded_seeds(root))
     assert (demos["dataset_task"], demos["dataset_eval_seeds"]) == ("pick_place", [])
+    # so101-sim replay re-simulates it: its recorded steps, then the frames held after the end
+    assert [replay(root, e) for e in (0, 1)] == [0.0, 0.0]
     assert tuple(ds.meta.features["observation.images.front"]["shape"]) == (H, W, 3)
     assert ds.meta.features["action"]["names"] == list(FEATURE_NAMES)
     demos = load_demos(open_lerobot_dataset(root), load_preset("cpu"), None)

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from so101_sim.dataset.reader import info_features, read_frames
+from so101_sim.dataset.robot_episodes import ROBOT_EPISODES, read_robot_episodes
 from so101_sim.dataset.schema import (
     DEFAULT_REPO_ID,
     EVAL_SEED_START,
@@ -182,42 +183,52 @@ def replay(dataset_dir: str | Path, episode: int) -> float:
     Uses ``action_executed`` where the dataset has it (DART noise), else ``action``. Returns
     the largest absolute difference between the recorded ``observation.state`` and the
     re-simulated ``agent_pos`` over the episode; 0 because the simulation is deterministic.
+    A dataset lerobot-record wrote through ``--robot.type=so101_sim`` gives the seed, task and
+    sim steps in the robot's notes (``dataset.robot_episodes``); its frames after the sim
+    episode ended held the last state, and are compared with it.
     """
     root = Path(dataset_dir)
     if not (root / "meta" / "info.json").is_file():
         raise FileNotFoundError(f"{root} is not a LeRobotDataset (no meta/info.json); expected "
                                 "the --out folder of `so101-sim record`")
     features = info_features(root)
-    if "episode_seed" not in features:
+    note = None if "episode_seed" in features else read_robot_episodes(root).get(episode)
+    if "episode_seed" not in features and note is None:
         robot = json.loads((root / "meta" / "info.json").read_text()).get("robot_type")
-        hint = (f"; it was recorded through --robot.type={robot}, so replay it with lerobot-replay "
-                f"--robot.type={robot} --robot.seed=SEED --robot.episode_end=hold "
-                f"--dataset.repo_id=local/{root.name} --dataset.root={root} "
-                f"--dataset.episode={episode} (SEED: that episode's seed in lerobot-record's "
-                "--robot.outcomes_path file)") if robot == "so101_sim" else ""
+        hint = (f"; it was recorded through --robot.type={robot} before the robot noted its "
+                f"seeds (no episode {episode} in {ROBOT_EPISODES}), so replay it with "
+                f"lerobot-replay --robot.type={robot} --robot.seed=SEED "
+                f"--robot.episode_end=hold --dataset.repo_id=local/{root.name} "
+                f"--dataset.root={root} --dataset.episode={episode} (SEED: that episode's seed "
+                "in lerobot-record's --robot.outcomes_path file)") if robot == "so101_sim" else ""
         raise ValueError(f"{root} has no episode_seed feature: replay re-simulates an episode "
                          "from the reset seed `so101-sim record` stores, so it needs a dataset "
                          f"recorded by so101-sim{hint}")
     act_key = "action_executed" if "action_executed" in features else "action"
-    df = read_frames(root, ["episode_index", "frame_index", "episode_seed",
-                             "observation.state", act_key])
+    df = read_frames(root, ["episode_index", "frame_index", "observation.state", act_key,
+                            *([] if note else ["episode_seed"])])
     ep = df[df["episode_index"] == episode].sort_values("frame_index")
     if len(ep) == 0:
         n = df["episode_index"].nunique()
         raise ValueError(f"episode {episode} not in {root} (it has {counted(n, 'episode')}, "
                          f"0..{n - 1})")
-    seed = int(np.asarray(ep["episode_seed"].iloc[0]).reshape(-1)[0])
     states = np.stack([np.asarray(s, dtype=np.float32) for s in ep["observation.state"]])
     actions = np.stack([np.asarray(a, dtype=np.float32) for a in ep[act_key]])
-    task = read_sidecar(root).get("task", "pick_place")
+    if note is None:
+        seed = int(np.asarray(ep["episode_seed"].iloc[0]).reshape(-1)[0])
+        task, steps = read_sidecar(root).get("task", "pick_place"), len(states)
+    else:
+        seed, task = note["seed"], note["task"]
+        steps = note["steps"] if type(note.get("steps")) is int else len(states)
 
     env = SO101Env(task=task, obs_type="state")
     try:
         obs, _ = env.reset(seed=seed)
         worst = 0.0
-        for state, action in zip(states, actions, strict=True):
+        for k, (state, action) in enumerate(zip(states, actions, strict=True)):
             worst = max(worst, float(np.max(np.abs(obs["agent_pos"] - state))))
-            obs, *_ = env.step(action)
+            if k < steps:  # later frames: the robot held the ended episode's last state
+                obs, *_ = env.step(action)
     finally:
         env.close()
     return worst
