@@ -487,6 +487,41 @@ def test_the_robots_note_of_dataset_episodes_is_read_as_data(tmp_path, caplog):
         "dataset episode 0 needs --robot.seed=4 --robot.task=stack"]
 
 
+def test_resumed_recording_starts_after_the_seeds_the_dataset_holds(tmp_path, monkeypatch,
+                                                                    caplog):
+    """`lerobot-record --resume=true` adds episodes to a dataset, and the robot started them at
+    its default seed 0 again: the scenes of the dataset's first episodes, twice. Now they start
+    after the seeds the robot noted, and the connect line says so."""
+    from so101_sim.dataset import append_robot_episode
+
+    data = tmp_path / "demos"
+    (data / "meta").mkdir(parents=True)
+    (data / "meta" / "info.json").write_text('{"features": {}}')
+    for episode, seed in enumerate((3, 4, 9)):
+        append_robot_episode(data, {"dataset_episode": episode, "seed": seed,
+                                    "task": "pick_place"})
+    line = ["lerobot-record", "--robot.type=so101_sim", f"--dataset.root={data}",
+            "--dataset.repo_id=local/demos"]
+    monkeypatch.setattr(sys, "argv", [*line, "--resume=true"])
+    robot = _robot(tmp_path)
+    assert robot.config.seed == 10
+    with caplog.at_level("INFO"):
+        robot.connect()
+    try:
+        assert robot.episode[:2] == (0, 10)
+    finally:
+        robot.disconnect()
+    assert any(r.getMessage().endswith(
+        f"cameras front,side at {H}x{W}; seed 10 on, after the seeds of the 3 episodes dataset "
+        f"{data} holds (--robot.seed chooses others), not paced (realtime=false)")
+        for r in caplog.records)
+    # what the line gives is kept; a new dataset starts at the default seed
+    monkeypatch.setattr(sys, "argv", [*line, "--resume=true", "--robot.seed=7"])
+    assert _robot(tmp_path, seed=7).config.seed == 7
+    monkeypatch.setattr(sys, "argv", line)
+    assert _robot(tmp_path).config.seed == 0
+
+
 def test_recording_without_a_task_text_names_the_one_to_give(tmp_path, monkeypatch, caplog):
     """lerobot-record (or -rollout into a dataset) with no --dataset.single_task stored an
     empty task text on every frame, without a word; now one warning gives the task's own."""

@@ -14,6 +14,8 @@ from so101_sim.dataset.reader import (
 from so101_sim.dataset.robot_episodes import (
     ROBOT_EPISODES,
     append_robot_episode,
+    noted_seeds,
+    noted_task,
     read_robot_episodes,
 )
 from so101_sim.dataset.schema import (
@@ -33,5 +35,6 @@ from so101_sim.dataset.store import SIDECAR, read_sidecar
 __all__ = ["CAMERAS", "DEFAULT_REPO_ID", "DEFAULT_VCODEC", "EVAL_SEED_START", "ROBOT_EPISODES",
            "ROBOT_TYPE", "SIDECAR", "VCODECS", "VIDEO_KEYS", "NotADatasetError",
            "append_robot_episode", "check_seed_range", "check_video_size", "dataset_features",
-           "info_features", "open_lerobot_dataset", "read_frames", "read_robot_episodes",
-           "read_sidecar", "recorded_seeds", "recorded_task", "stored_seeds"]
+           "info_features", "noted_seeds", "noted_task", "open_lerobot_dataset", "read_frames",
+           "read_robot_episodes", "read_sidecar", "recorded_seeds", "recorded_task",
+           "stored_seeds"]

@@ -16,6 +16,7 @@ from lerobot.robots.config import RobotConfig
 from lerobot.teleoperators.config import TeleoperatorConfig
 from lerobot.utils.constants import HF_LEROBOT_HOME
 
+from so101_sim.dataset import noted_seeds
 from so101_sim.dataset_reads import DatasetReads
 from so101_sim.harness.trained_on import unseen_task_note
 from so101_sim.policy_frames import (
@@ -90,11 +91,15 @@ class SO101SimConfig(RobotConfig):
 
     def _check(self) -> None:
         self.task_by: Path | None = None  # the policy whose demos' task the robot took
-        self.replay_note = ""  # what the robot took from the episode lerobot-replay replays
+        self.dataset_note = ""  # what the robot took from the line's dataset
         episode = flag_value(sys.argv, "--dataset.episode")
         data = DatasetReads.at(sys.argv, HF_LEROBOT_HOME) if episode is not None else None
         if data is not None and episode.isdigit():
             self._take_replayed(data, int(episode))
+        elif (command_name(sys.argv[0] if sys.argv else "") == "lerobot-record"
+              and str(flag_value(sys.argv, "--resume")).lower() in ("true", "1", "yes")
+              and flag_value(sys.argv, "--robot.seed") is None):
+            self._seed_after(DatasetReads.at(sys.argv, HF_LEROBOT_HOME))
         found = policy_path(sys.argv)
         demos = demos_of(found[0]) if found else {}  # for lerobot-train's, reads the dataset
         trained = demos.get(TASK_KEY)
@@ -180,9 +185,20 @@ class SO101SimConfig(RobotConfig):
         if not took:
             return
         self.task, self.seed = task or self.task, self.seed if seed is None else seed
-        self.replay_note = (f"; {' and '.join(w for w, _ in took)} of episode {episode} of "
+        self.dataset_note = (f"; {' and '.join(w for w, _ in took)} of episode {episode} of "
                             f"dataset {data.root} ({' and '.join(f for _, f in took)} "
                             f"choose{'s' if len(took) == 1 else ''} others)")
+
+    def _seed_after(self, data: DatasetReads | None) -> None:
+        """lerobot-record --resume=true adds episodes to a dataset: they start after the seeds
+        its episodes ran (the robot's notes), not at seed 0 again, which recorded the same
+        scenes twice."""
+        seeds = noted_seeds(data.root) if data is not None else None
+        if seeds:
+            self.seed = max(seeds) + 1
+            self.dataset_note = (f"; seed {self.seed} on, after the seeds of the "
+                                 f"{len(seeds)} episodes dataset {data.root} holds "
+                                 "(--robot.seed chooses others)")
 
     def taken_note(self) -> str:
         """The connect line's note on what the robot took from the line's policy or dataset."""
@@ -190,10 +206,10 @@ class SO101SimConfig(RobotConfig):
             ("task", "--robot.task", self.task_by),
             ("cameras", "--robot.camera_names", self.cameras_by)) if by is not None]
         if not took:
-            return self.replay_note
+            return self.dataset_note
         return (f"; {' and '.join(w for w, _ in took)} as {self.task_by or self.cameras_by} was "
                 f"trained on ({' and '.join(f for _, f in took)} choose"
-                f"{'s' if len(took) == 1 else ''} others){self.replay_note}")
+                f"{'s' if len(took) == 1 else ''} others){self.dataset_note}")
 
     @property
     def image_size(self) -> tuple[int, int]:
