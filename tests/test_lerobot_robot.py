@@ -489,9 +489,10 @@ def test_the_robots_note_of_dataset_episodes_is_read_as_data(tmp_path, caplog):
 
 def test_resumed_recording_starts_after_the_seeds_the_dataset_holds(tmp_path, monkeypatch,
                                                                     caplog):
-    """`lerobot-record --resume=true` adds episodes to a dataset, and the robot started them at
-    its default seed 0 again: the scenes of the dataset's first episodes, twice. Now they start
-    after the seeds the robot noted, and the connect line says so."""
+    """`lerobot-record --resume=true` (or lerobot-rollout's) adds episodes to a dataset, and the
+    robot started them at its default seed 0 again: the scenes of the dataset's first
+    episodes, twice. Now they start after the seeds the robot noted, and the connect line
+    says so."""
     from so101_sim.dataset import append_robot_episode
 
     data = tmp_path / "demos"
@@ -515,6 +516,8 @@ def test_resumed_recording_starts_after_the_seeds_the_dataset_holds(tmp_path, mo
         f"cameras front,side at {H}x{W}; seed 10 on, after the seeds of the 3 episodes dataset "
         f"{data} holds (--robot.seed chooses others), not paced (realtime=false)")
         for r in caplog.records)
+    monkeypatch.setattr(sys, "argv", ["lerobot-rollout", *line[1:], "--resume=true"])
+    assert _robot(tmp_path).config.seed == 10  # lerobot-rollout into a dataset: the same
     # what the line gives is kept; a new dataset starts at the default seed
     monkeypatch.setattr(sys, "argv", [*line, "--resume=true", "--robot.seed=7"])
     assert _robot(tmp_path, seed=7).config.seed == 7

@@ -38,6 +38,7 @@ from so101_sim.utils.lerobot_cli import (
 )
 
 ROBOT_TYPE = "so101_sim"
+RECORDERS = ("lerobot-record", "lerobot-rollout")  # the commands that write a dataset
 TELEOP_TYPE = "so101_sim_expert"
 EPISODE_END = ("auto", "reset", "hold")
 _SIZE_RANGE = (16, 2048)
@@ -96,7 +97,7 @@ class SO101SimConfig(RobotConfig):
         data = DatasetReads.at(sys.argv, HF_LEROBOT_HOME) if episode is not None else None
         if data is not None and episode.isdigit():
             self._take_replayed(data, int(episode))
-        elif (command_name(sys.argv[0] if sys.argv else "") == "lerobot-record"
+        elif (command_name(sys.argv[0] if sys.argv else "") in RECORDERS
               and str(flag_value(sys.argv, "--resume")).lower() in ("true", "1", "yes")
               and flag_value(sys.argv, "--robot.seed") is None):
             self._seed_after(DatasetReads.at(sys.argv, HF_LEROBOT_HOME))
@@ -150,7 +151,7 @@ class SO101SimConfig(RobotConfig):
         self.sized_by: Path | None = None  # the policy whose input size the images took
         if self.image_size == DEFAULT_IMAGE and render == (0, 0):
             self._size_for_policy(names)
-        if (command_name(sys.argv[0] if sys.argv else "") in ("lerobot-record", "lerobot-rollout")
+        if (command_name(sys.argv[0] if sys.argv else "") in RECORDERS
                 and flag_value(sys.argv, "--dataset.repo_id") is not None
                 and flag_value(sys.argv, "--dataset.single_task") is None):
             # lerobot then stores an empty task text: nothing for a language-conditioned policy,
@@ -190,9 +191,9 @@ class SO101SimConfig(RobotConfig):
                             f"choose{'s' if len(took) == 1 else ''} others)")
 
     def _seed_after(self, data: DatasetReads | None) -> None:
-        """lerobot-record --resume=true adds episodes to a dataset: they start after the seeds
-        its episodes ran (the robot's notes), not at seed 0 again, which recorded the same
-        scenes twice."""
+        """lerobot-record (or -rollout) --resume=true adds episodes to a dataset: they start
+        after the seeds its episodes ran (the robot's notes), not at seed 0 again, which
+        recorded the same scenes twice."""
         seeds = noted_seeds(data.root) if data is not None else None
         if seeds:
             self.seed = max(seeds) + 1
