@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib.metadata
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -753,7 +754,8 @@ def test_async_inference_drives_the_sim(tmp_path):
             server.kill()
     # KeyboardInterrupt is how the client stops (its own finally: robot.disconnect())
     assert run.returncode in (0, 130, -signal.SIGINT), run.stderr[-3000:]
-    assert "so101_sim robot disconnected" in run.stderr
+    assert "so101_sim: 1 episode ended (--robot.episodes=1): stopping" in run.stderr
+    assert re.search(r"so101_sim robot disconnected: 1 episode ended, [01] succeeded", run.stderr)
     first = _outcomes(outcomes)[0]
     assert (first["seed"], first["ended_by"]) == (0, "env") and 0 < first["steps"] <= 20
 

@@ -37,6 +37,7 @@ from lerobot_robot_so101_sim.dataset_events import (
 )
 from so101_sim.policy_frames import refuse_or_warn, robot_input_problem, size_warning
 from so101_sim.tasks import load_task
+from so101_sim.utils.text import counted
 from so101_sim.utils.units import FEATURE_NAMES
 
 logger = logging.getLogger(__name__)
@@ -72,8 +73,7 @@ class SO101Sim(Robot):
         super().__init__(config)
         self.config = config
         self.task = load_task(config.task)  # the config has checked it and the cameras
-        names = tuple(config.camera_names) or tuple(self.task.cameras)
-        self.camera_names = names
+        self.camera_names = names = tuple(config.camera_names) or tuple(self.task.cameras)
         # lerobot sizes its image writers with len(robot.cameras): name -> (H, W, 3)
         self.cameras = {c: (*config.image_size, 3) for c in names}
         self.outcomes: list[dict[str, Any]] = []
@@ -168,11 +168,11 @@ class SO101Sim(Robot):
             if ep is not None and ep.over:
                 self._settle(ep)
             self._release()
-        done = [o for o in self.outcomes
-                if not o["discarded"] and o["ended_by"] != "disconnect"]
+        done = [o for o in self.outcomes if not o["discarded"] and o["ended_by"] != "disconnect"]
         wins = sum(o["success"] for o in done)
-        logger.info("%s disconnected: %d episodes ended, %d successes%s", self, len(done), wins,
-                    f" ({100 * wins / len(done):.0f}%)" if done else "")
+        share = f" ({100 * wins / len(done):.0f}%)" if done else ""
+        logger.info("%s disconnected: %s ended, %d succeeded%s", self,
+                    counted(len(done), "episode"), wins, share)
 
     def _release(self) -> None:
         unwatch_datasets(self)
@@ -345,8 +345,8 @@ class SO101Sim(Robot):
         gracefully, lerobot-teleoperate and robot_client stop on KeyboardInterrupt); once."""
         if self._stop == "asked":
             self._stop = "sent"
-            logger.info("so101_sim: %d episodes ended (--robot.episodes=%d): stopping as Ctrl-C "
-                        "would", self._ended, self.config.episodes)
+            logger.info("so101_sim: %s ended (--robot.episodes=%d): stopping as Ctrl-C would",
+                        counted(self._ended, "episode"), self.config.episodes)
             os.kill(os.getpid(), signal.SIGINT)
 
     def _settle(self, ep: _Episode) -> None:
