@@ -57,7 +57,7 @@ from so101_sim.tasks import ALL_CAMERAS, load_task, loads_here
 from so101_sim.train.checkpoint import TASK_KEY, demos_of
 from so101_sim.utils.lerobot_cli import add_explainer, config_errors, one_line_errors, say
 from so101_sim.utils.units import FEATURE_NAMES
-from so101_sim.workers.local import ensure_fork_server
+from so101_sim.workers.local import start_fork_server
 
 # lerobot 0.6.1's `load_plugin` lists the submodules of whatever `discover_packages_path`
 # names through `module.__path__`, so a plain module raises AttributeError there. An empty
@@ -266,7 +266,10 @@ class SO101PickPlaceEnvConfig(EnvConfig):
         make_one = partial(_make_wrapped_env, self.gym_id, self.disable_env_checker,
                            self.gym_kwargs)
         if use_async_envs and n_envs > 1:
-            ensure_fork_server()  # workers import as this process does, not from the cwd
+            # The server imports the env and lerobot-eval's own module once for all workers
+            # (each imported torch and lerobot itself before: workers.local.script_module);
+            # workers import as this process does, not from the cwd.
+            start_fork_server(("so101_sim.sim.env", __name__))
             vec: gym.vector.VectorEnv = gym.vector.AsyncVectorEnv(
                 [make_one] * n_envs, context="forkserver",
                 autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)

@@ -21,6 +21,7 @@ from so101_sim.lerobot_plugin import ENV_TYPE, SO101PickPlaceEnvConfig
 
 BIN = Path(sys.executable).parent
 H, W = 48, 64
+MODULE = "lerobot.scripts.lerobot_eval"
 
 
 def test_plugin_distribution_is_named_for_lerobot_discovery():
@@ -57,9 +58,15 @@ def test_lerobot_eval_runs_without_discovery_flags(tmp_path):
            "--policy.device=cpu", "--eval.n_episodes=2", "--eval.batch_size=2",
            f"--output_dir={out}", "--seed=100000"]
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    run = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=600,
+                         env={**env, "PYTHONPROFILEIMPORTTIME": "1"})
     assert run.returncode == 0, run.stderr[-3000:]
     assert "Imported third-party plugin: lerobot_env_so101_sim" in run.stderr
+    # lerobot-eval's module (torch, lerobot) is imported by the command and by the fork server
+    # of its 2 env workers, which find it there (each imported it itself before)
+    imported = [ln for ln in run.stderr.splitlines()
+                if ln.startswith("import time:") and ln.split("|")[-1].strip() == MODULE]
+    assert len(imported) == 2, imported
     assert (f"--env.type={ENV_TYPE}: {H}x{W} frames, as {ckpt} was trained on (lerobot-eval "
             "hands the policy the frames as they are; --env.task, --env.cameras, "
             "--env.image_height and --env.image_width choose others)") in run.stderr

@@ -229,3 +229,66 @@ def test_workers_import_what_the_driver_imports_not_the_current_directory(tmp_pa
     seen = json.loads(out.stdout.strip().splitlines()[-1])
     assert seen["driver"] == {"so101_sim": str(Path(so101_sim.__file__).parent), "stray": False}
     assert seen["worker"] == seen["driver"]  # the same so101_sim, no stray module
+
+
+HEAVY_DEP = """
+import os
+with open(os.environ["IMPORT_LOG"], "a") as f:  # one line per process that imports this
+    f.write(f"{os.getpid()}\\n")
+"""
+
+PROBE_CLI = """
+import json, os, sys
+import heavy_dep  # what torch and lerobot are to lerobot-eval's module
+
+class PidProbe:
+    def pid(self):
+        return os.getpid()
+
+class PidProbeFactory:
+    def __call__(self):
+        return PidProbe()
+
+def main():
+    from so101_sim.workers import start_pool
+    with start_pool(PidProbeFactory(), 3, name="test-script", preload=()) as pool:
+        for i in range(3):
+            pool.submit(i, "pid")
+        replies = []
+        while len(replies) < 3:
+            replies += pool.collect()
+        pids = sorted(r.value for r in replies)
+    print(json.dumps({"driver": os.getpid(), "workers": pids}), flush=True)
+
+if __name__ == "__main__":
+    main()
+"""
+
+CONSOLE_SCRIPT = """
+import sys
+from probe_cli import main
+if __name__ == "__main__":
+    sys.exit(main())
+"""
+
+
+@pytest.mark.parametrize("how", ["console script", "python -m"])
+def test_workers_do_not_import_the_commands_module_again(tmp_path, how) -> None:
+    """Each forked worker runs the command's main module again first; Python 3.12's fork
+    server never imports it for them, so every one of lerobot-eval's 16 env workers imported
+    torch and lerobot itself (28-34 s of its 121-124 s on 100 episodes). The server imports
+    the command's module once, and the workers find its imports done."""
+    for name, text in (("heavy_dep.py", HEAVY_DEP), ("probe_cli.py", PROBE_CLI),
+                       ("entry.py", CONSOLE_SCRIPT)):
+        (tmp_path / name).write_text(text)
+    log = tmp_path / "imports.log"
+    cmd = ([sys.executable, str(tmp_path / "entry.py")] if how == "console script"
+           else [sys.executable, "-m", "probe_cli"])
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                         env={**os.environ, "IMPORT_LOG": str(log), "PYTHONPATH": str(tmp_path)})
+    assert out.returncode == 0, out.stderr[-3000:]
+    seen = json.loads(out.stdout.strip().splitlines()[-1])
+    importers = [int(p) for p in log.read_text().split()]
+    assert len(seen["workers"]) == 3 and seen["driver"] in importers
+    assert not set(seen["workers"]) & set(importers)  # no worker imported it itself
+    assert len(importers) == 2  # the driver and the fork server, once each

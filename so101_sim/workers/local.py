@@ -32,8 +32,11 @@ SERVER_INIT = "so101_sim.workers.server_init"
 
 
 def server_preload(preload: tuple[str, ...]) -> list[str]:
-    """What the fork server imports: `preload`, then ``SERVER_INIT``."""
-    return [m for m in preload if m != SERVER_INIT] + [SERVER_INIT]
+    """What the fork server imports: `preload`, the command's own module (``script_module``),
+    then ``SERVER_INIT``."""
+    script = script_module()
+    mods = [*preload, *([script] if script and script not in preload else [])]
+    return [m for m in mods if m != SERVER_INIT] + [SERVER_INIT]
 
 
 def _worker_main(conn: Connection, factory: Callable[[], Any]) -> None:
@@ -78,6 +81,25 @@ def ensure_fork_server() -> None:
     paths = os.pathsep.join(os.path.abspath(p or os.curdir) for p in sys.path)  # "" = cwd
     with environ_set({"PYTHONSAFEPATH": "1", "PYTHONPATH": paths}):
         forkserver.ensure_running()
+
+
+def script_module() -> str | None:
+    """The module the running command's ``__main__`` comes from (``lerobot.scripts.lerobot_eval``
+    for the ``lerobot-eval`` console script or ``python -m lerobot.scripts.lerobot_eval``),
+    else None.
+
+    Every process forked from the fork server runs the main module again first (as
+    ``__mp_main__``), and CPython 3.12's server never imports it for them (``forkserver`` keeps
+    a ``main_path`` key that ``spawn`` names ``init_main_from_path``), so each of
+    lerobot-eval's env workers imported torch and lerobot on its own. Preloaded once in the
+    server, the module's imports are already there when a worker runs it."""
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    if spec is not None:  # `python -m NAME`: workers run NAME again (a package's __main__ not)
+        name = spec.name
+        return None if name == "__main__" or name.endswith(".__main__") else name
+    module = getattr(getattr(main, "main", None), "__module__", None)  # a console script
+    return module if isinstance(module, str) and module != "__main__" else None
 
 
 def start_fork_server(preload: tuple[str, ...]) -> None:
