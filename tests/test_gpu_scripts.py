@@ -37,6 +37,16 @@ def _pack_module():
     return load_script(GPU / "pack_dataset.py", register=True)
 
 
+@pytest.fixture
+def no_fork(monkeypatch: pytest.MonkeyPatch) -> None:
+    """--workers must not fork this process: by then pyarrow's and torch's threads run in it
+    (Python 3.12 warns of deadlocks). Its workers import the script by name instead."""
+    def refuse() -> int:
+        raise AssertionError("os.fork() called from a multi-threaded process")
+    monkeypatch.setattr(os, "fork", refuse)
+    monkeypatch.syspath_prepend(str(GPU))
+
+
 @pytest.fixture(scope="module")
 def packed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("gpu")
@@ -73,7 +83,8 @@ def test_packing_keeps_the_recording_and_shrinks_the_videos(packed, capsys) -> N
         _pack_module().pack(src, out, SIZE, crf=14)
 
 
-def test_packing_in_parallel_can_drop_what_the_trainer_does_not_read(packed, tmp_path) -> None:
+def test_packing_in_parallel_can_drop_what_the_trainer_does_not_read(packed, tmp_path,
+                                                                    no_fork) -> None:
     """--workers re-encodes files in processes as close to the source as one process does
     (the same bytes with --repeatable: the next test); --drop-columns removes a feature from
     the tables and info.json and refuses one the trainer reads."""
@@ -115,7 +126,8 @@ def _scribble_heap(seed: int) -> None:
         libc.free(ctypes.c_void_p(block))
 
 
-def test_repeatable_packing_gives_the_same_bytes_in_any_process(packed, tmp_path) -> None:
+def test_repeatable_packing_gives_the_same_bytes_in_any_process(packed, tmp_path,
+                                                                no_fork) -> None:
     """--repeatable: one process with a scribbled heap and two --workers processes write the
     same bytes (by default, on some CPUs, x264's macroblock-tree makes them depend on the heap)."""
     src, _ = packed
