@@ -105,7 +105,10 @@ def test_state_obs_never_creates_a_renderer(state_env):
 
 
 def test_passes_gymnasium_env_checker():
-    env = PickPlaceEnv(image_size=SMALL, render_mode="rgb_array")
+    # made through the registry, so the env has a spec and the checker also builds it with
+    # each of its other render modes
+    env = gym.make("so101_sim/PickPlace-v0", image_size=SMALL, render_mode="rgb_array").unwrapped
+    assert env.spec is not None
     check_env(env, skip_render_check=False)
     env.close()
 
