@@ -128,8 +128,9 @@ def _scribble_heap(seed: int) -> None:
 
 def test_repeatable_packing_gives_the_same_bytes_in_any_process(packed, tmp_path,
                                                                 no_fork) -> None:
-    """--repeatable: one process with a scribbled heap and two --workers processes write the
-    same bytes (by default, on some CPUs, x264's macroblock-tree makes them depend on the heap)."""
+    """--repeatable: one process with a scribbled heap and two --workers processes (heaps of
+    their own, from the fork server) write the same bytes (by default, on some CPUs, x264's
+    macroblock-tree makes them depend on the heap)."""
     src, _ = packed
     _scribble_heap(1)
     _pack_module().pack(src, tmp_path / "one", SIZE, crf=14, repeatable=True)
