@@ -268,4 +268,7 @@ def child_main(raw: str) -> None:
 
 
 if __name__ == "__main__":
+    if len(sys.argv) != 2 or not sys.argv[1].startswith("{"):
+        sys.exit("usage: bench_env_jobs.py JOB_JSON (bench_env.py runs it, one job per "
+                 "process; run `benchmarks/bench_env.py --help` instead)")
     child_main(sys.argv[1])

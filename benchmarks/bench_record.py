@@ -109,6 +109,8 @@ def main() -> None:
     print(f"bench_record: {args.episodes} episodes per config at {h}x{w}, vcodec "
           f"{args.vcodec}, workers {worker_counts}, {cores} CPUs; load average "
           f"{load_start[0]:.2f} {load_start[1]:.2f} {load_start[2]:.2f}", flush=True)
+    if args.out_dir is not None:
+        args.out_dir.mkdir(parents=True, exist_ok=True)
     results = []
     with tempfile.TemporaryDirectory(prefix="bench_record_", dir=args.out_dir) as tmp:
         for workers in worker_counts:

@@ -28,6 +28,8 @@ sys.path.insert(0, str(ROOT))
 
 from so101_sim.train.presets import load_preset  # noqa: E402
 
+WARMUP_STEPS = 2  # this trainer's first logged steps, left out of its rate
+
 # DiffusionConfig fields passed to lerobot-train as --policy.<field>=<value>.
 _SKIP = {"normalization_mapping", "resize_shape", "crop_shape", "crop_ratio", "device",
          "push_to_hub"}
@@ -52,11 +54,13 @@ def run_ours(dataset: Path, preset: str, steps: int, batch: int, work: Path,
             f"steps={steps}, batch_size={batch}, progress=False, log_every=1, "
             f"precision={precision!r}, keep_frame_cache=True)")
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT,
-                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, text=True,
+                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     total = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise SystemExit(f"so101-sim train ({precision}) failed:\n{proc.stderr[-4000:]}")
     rows = [json.loads(x) for x in (out / "train_log.jsonl").read_text().splitlines()]
-    warm = rows[2:]  # skip the first steps (allocator and thread-pool warm-up)
+    warm = rows[WARMUP_STEPS:]  # allocator and thread-pool warm-up
     span = warm[-1]["wall_s"] - warm[0]["wall_s"]
     per_step = span / (warm[-1]["step"] - warm[0]["step"])
     return {"samples_per_s": batch / per_step, "s_per_step": per_step, "total_s": total}
@@ -104,6 +108,10 @@ def main() -> None:
     ap.add_argument("--lerobot-workers", type=int, default=2,
                     help="lerobot-train DataLoader workers (video decoding); 2 = the cores")
     a = ap.parse_args()
+    if a.steps < WARMUP_STEPS + 2:
+        ap.error(f"--steps {a.steps} is too few: the first {WARMUP_STEPS} are warm-up and the "
+                 f"rate is read between the steps after them; give --steps {WARMUP_STEPS + 2} "
+                 "or more (default 30)")
     batch = a.batch_size or load_preset(a.preset).train.batch_size
     with tempfile.TemporaryDirectory(prefix="bench_train_") as tmp:
         work = Path(tmp)

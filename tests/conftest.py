@@ -92,6 +92,7 @@ MODULE_SECONDS = {
     "test_lerobot_zero_flags": 28, "test_policy_classes": 23, "test_exact_speedups": 33,
     "test_grasp_trace": 19, "test_explain": 18, "test_testing": 17, "test_augment": 16,
     "test_wrist": 14, "test_bad_input": 13, "test_baselines": 13, "test_encoder_split": 13,
+    "test_bench_scripts": 14,
 }
 
 
