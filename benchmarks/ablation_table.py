@@ -48,10 +48,18 @@ def main(argv: list[str] | None = None) -> int:
             print(f"ablation_table: {arg!r} is not LABEL=FOLDER; e.g. 'plain=runs/eval_plain'",
                   file=sys.stderr)
             return 2
-        pairs.append((label, load_run(folder)))
+        try:
+            pairs.append((label, load_run(folder)))
+        except (FileNotFoundError, ValueError) as exc:
+            print(f"ablation_table: error: {exc}", file=sys.stderr)
+            return 2
     ref_label, ref = pairs[0]
     for _, side in pairs[1:]:
-        check_comparable(ref, side)
+        try:
+            check_comparable(ref, side)
+        except ValueError as exc:
+            print(f"ablation_table: error: {exc}", file=sys.stderr)
+            return 2
     print("| run | dataset frames | step | success | 95% CI | failures | "
           f"vs {ref_label} (paired) |")
     print("|---|---|---|---|---|---|---|")

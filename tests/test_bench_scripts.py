@@ -3,6 +3,7 @@ failed child run end in one message that says what went wrong, never a bare trac
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -45,3 +46,29 @@ def test_bench_record_makes_its_out_dir(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert out_dir.is_dir() and not any(out_dir.iterdir())  # its datasets were temporary
     assert "| 1 |" in proc.stdout  # the one-worker row of the table
+
+
+def _eval_run(root: Path, name: str, seeds: range) -> Path:
+    """The eval_info.json of a finished eval, as much of it as the table reads."""
+    run = root / name
+    run.mkdir()
+    info = {"per_episode": [{"seed": s, "success": s % 3 != 0, "actions_sha": f"{name}{s}"}
+                            for s in seeds],
+            "aggregated": {"failure_modes": {"misplaced": sum(s % 3 == 0 for s in seeds)}},
+            "config": {"policy": name, "policy_fingerprint": name, "task": "pick_place",
+                       "task_sha256": "t" * 64, "images": "direct: rendered at 60x80"}}
+    (run / "eval_info.json").write_text(json.dumps(info))
+    return run
+
+
+def test_ablation_table_says_which_runs_it_cannot_pair(tmp_path: Path, capsys) -> None:
+    script = load_script(BENCH / "ablation_table.py")
+    a = _eval_run(tmp_path, "a", range(100_000, 100_030))
+    b = _eval_run(tmp_path, "b", range(100_000, 100_030))
+    short = _eval_run(tmp_path, "short", range(100_000, 100_020))
+    assert script.main([f"a={a}", f"b={b}"]) == 0
+    assert "| b |" in capsys.readouterr().out
+    assert script.main([f"a={a}", f"s={short}"]) == 2
+    assert "ablation_table: error: cannot compare" in capsys.readouterr().err
+    assert script.main([f"a={a}", f"gone={tmp_path / 'gone'}"]) == 2
+    assert "does not exist" in capsys.readouterr().err
