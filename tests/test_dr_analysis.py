@@ -9,6 +9,7 @@ import tomllib
 from pathlib import Path
 
 import numpy as np
+import pytest
 from script_loader import load_script
 
 from so101_sim.harness.stats import mcnemar_p_value
@@ -131,3 +132,8 @@ def test_dr_groups_refuses_a_card_on_other_seeds(tmp_path):
                           str(tmp_path)], capture_output=True, text=True, timeout=60)
     assert out.returncode != 0
     assert "are not the card's" in out.stderr and "dr_" in out.stderr
+
+
+def test_by_place_names_a_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit, match=r"gone/eval_info\.json: no such file; pass an "):
+        _by_place().main([str(tmp_path / "gone" / "eval_info.json")])

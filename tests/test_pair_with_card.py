@@ -46,3 +46,9 @@ def test_against_a_missing_look_names_it_and_prints_no_table():
     assert out.returncode != 0
     assert "no_such_look.json" in out.stderr and "expected a look's eval_info.json" in out.stderr
     assert out.stdout == ""
+
+
+def test_an_unknown_look_is_named_not_an_empty_table():
+    out = _run("no_such_look.json")
+    assert out.returncode == 1 and out.stdout == ""
+    assert out.stderr.startswith("no_such_look.json: no such file in any task's folder here")

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from script_loader import load_script
 from tiny_policy import make_tiny_diffusion_checkpoint
 
@@ -48,3 +49,13 @@ def test_keypoints_are_what_the_encoders_linear_layer_reads(tmp_path: Path):
         points, full = probe.Keypoints(enc)(x), enc(x)
     assert points.shape == (3, enc.out.in_features)  # 2 per keypoint, before the linear layer
     assert torch.allclose(enc.relu(enc.out(points)), full)
+
+
+def test_a_wrong_checkpoint_path_fails_before_any_render(tmp_path: Path, monkeypatch):
+    probe = load_script(SCRIPT)
+
+    def no_render(*args, **kwargs):
+        raise AssertionError("rendered before checking the checkpoints")
+    monkeypatch.setattr(probe, "collect", no_render)
+    with pytest.raises(SystemExit, match=r"^probe_cube: policy checkpoint .*gone not found; "):
+        probe.main([str(tmp_path / "gone")])

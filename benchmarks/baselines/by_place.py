@@ -43,6 +43,9 @@ LUMA = np.array([0.299, 0.587, 0.114])  # Rec. 601 weights: how bright a colour 
 
 def _load(path: Path) -> tuple[str, dict[int, tuple[bool, str | None]]]:
     path = path / "eval_info.json" if path.is_dir() else path
+    if not path.is_file():
+        sys.exit(f"{path}: no such file; pass an eval_info.json that `so101-sim eval` or "
+                 "`curve` wrote, or its folder")
     info = json.loads(path.read_text())
     try:
         task = info["config"]["task"]

@@ -58,6 +58,10 @@ def main() -> None:
                     help="pair with the look <task>/OTHER here instead of the suite_diffusion card")
     args = ap.parse_args()
     tasks = [t for t in TASKS if (HERE / t / args.name).exists()]
+    if not tasks:
+        raise SystemExit(f"{args.name}: no such file in any task's folder here ({HERE}/<task>/ "
+                         f"for <task> in {', '.join(TASKS)}); expected a look's file name, "
+                         "e.g. act_suite_te_step_0017500.json")
     for task in tasks:
         if args.against and not (HERE / task / args.against).exists():
             raise SystemExit(f"{task}: --against {args.against}: no file {task}/{args.against} "

@@ -147,14 +147,13 @@ def main(argv: list[str] | None = None) -> int:
 
     render = tuple(int(v) for v in args.render.split("x"))
     seeds = list(range(args.seed_start, args.seed_start + args.seeds))
-    data = collect(args.task, seeds, render)
-    edges = np.quantile(data["bearing"], np.linspace(0, 1, args.bins + 1))
-    bins = np.clip(np.searchsorted(edges, data["bearing"], side="right") - 1, 0, args.bins - 1)
-    labels = [f"{edges[b]:.0f} to {edges[b + 1]:.0f}" for b in range(args.bins)]
 
-    names, encoders = [], []
+    names, encoders = [], []  # the checkpoints first: a wrong path fails before the renders
     for path in args.checkpoints:
-        pol = LeRobotPolicy(path, batch_size=1, log=lambda s: None)
+        try:
+            pol = LeRobotPolicy(path, batch_size=1, log=lambda s: None)
+        except FileNotFoundError as exc:
+            sys.exit(f"probe_cube: {exc}")
         if not pol.is_diffusion:
             sys.exit(f"{path}: a {pol.cfg.type} checkpoint; this probe reads a Diffusion "
                      "Policy's rgb_encoder, pass a diffusion checkpoint")
@@ -170,6 +169,11 @@ def main(argv: list[str] | None = None) -> int:
         fresh = type(pol.policy.diffusion.rgb_encoder)(pol.cfg).eval()
         names.append("random encoder")
         encoders.append((pol, fresh))
+
+    data = collect(args.task, seeds, render)
+    edges = np.quantile(data["bearing"], np.linspace(0, 1, args.bins + 1))
+    bins = np.clip(np.searchsorted(edges, data["bearing"], side="right") - 1, 0, args.bins - 1)
+    labels = [f"{edges[b]:.0f} to {edges[b + 1]:.0f}" for b in range(args.bins)]
 
     print(f"task {args.task}, {len(seeds)} seeds from {args.seed_start}, rendered "
           f"{args.render}; held-out error (mm), median / 90th percentile per bearing bin "
