@@ -12,6 +12,7 @@ import shutil
 import subprocess
 import sys
 import tarfile
+from multiprocessing import forkserver
 from pathlib import Path
 
 import numpy as np
@@ -40,10 +41,16 @@ def _pack_module():
 @pytest.fixture
 def no_fork(monkeypatch: pytest.MonkeyPatch) -> None:
     """--workers must not fork this process: by then pyarrow's and torch's threads run in it
-    (Python 3.12 warns of deadlocks). Its workers import the script by name instead."""
+    (Python 3.12 warns of deadlocks). Nor may it start or use the process's fork server, which
+    every later pool in the process (the rest of a test session) would get with pack's
+    modules instead of its own. Its workers are spawned and import the script by name."""
     def refuse() -> int:
         raise AssertionError("os.fork() called from a multi-threaded process")
+
+    def refuse_server(self) -> None:
+        raise AssertionError("pack used the process's fork server")
     monkeypatch.setattr(os, "fork", refuse)
+    monkeypatch.setattr(forkserver.ForkServer, "ensure_running", refuse_server)
     monkeypatch.syspath_prepend(str(GPU))
 
 
@@ -128,8 +135,8 @@ def _scribble_heap(seed: int) -> None:
 
 def test_repeatable_packing_gives_the_same_bytes_in_any_process(packed, tmp_path,
                                                                 no_fork) -> None:
-    """--repeatable: one process with a scribbled heap and two --workers processes (heaps of
-    their own, from the fork server) write the same bytes (by default, on some CPUs, x264's
+    """--repeatable: one process with a scribbled heap and two --workers processes (spawned,
+    heaps of their own) write the same bytes (by default, on some CPUs, x264's
     macroblock-tree makes them depend on the heap)."""
     src, _ = packed
     _scribble_heap(1)

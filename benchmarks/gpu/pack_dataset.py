@@ -36,7 +36,6 @@ import numpy as np
 import pyarrow.parquet as pq
 
 from so101_sim.utils.image_pipeline import resize_frames
-from so101_sim.workers.local import start_fork_server
 
 # what `so101_sim.train.demos.load_demos` and LeRobotDataset's own indexing need
 TRAINER_READS = frozenset({"observation.state", "action", "timestamp", "frame_index",
@@ -118,10 +117,10 @@ def pack(src: Path, out: Path, size: tuple[int, int], crf: int, fps: int = 30,
     jobs = [(video, out / video.relative_to(src), size, fps, crf, repeatable) for video in videos]
     if workers > 1:
         # Never fork this process: pyarrow's and torch's threads are running by now, and a
-        # forked child that needs a lock one of them held hangs. Forkserver children start clean,
-        # from a server that imported the decoder and the resize once for all of them.
-        start_fork_server(("av", "so101_sim.utils.image_pipeline"))
-        with ProcessPoolExecutor(workers, mp_context=mp.get_context("forkserver")) as pool:
+        # forked child that needs a lock one of them held hangs. Spawned children start clean,
+        # and leave this process's fork server alone: started here with these modules, it
+        # would serve every later pool in the process (a test session's) without theirs.
+        with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
             results = list(pool.map(_pack_video, jobs))
     else:
         results = [_pack_video(job) for job in jobs]
