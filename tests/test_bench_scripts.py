@@ -3,12 +3,12 @@ failed child run end in one message that says what went wrong, never a bare trac
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from eval_folders import write_eval_run
 from script_loader import load_script
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
@@ -49,16 +49,7 @@ def test_bench_record_makes_its_out_dir(tmp_path: Path) -> None:
 
 
 def _eval_run(root: Path, name: str, seeds: range) -> Path:
-    """The eval_info.json of a finished eval, as much of it as the table reads."""
-    run = root / name
-    run.mkdir()
-    info = {"per_episode": [{"seed": s, "success": s % 3 != 0, "actions_sha": f"{name}{s}"}
-                            for s in seeds],
-            "aggregated": {"failure_modes": {"misplaced": sum(s % 3 == 0 for s in seeds)}},
-            "config": {"policy": name, "policy_fingerprint": name, "task": "pick_place",
-                       "task_sha256": "t" * 64, "images": "direct: rendered at 60x80"}}
-    (run / "eval_info.json").write_text(json.dumps(info))
-    return run
+    return write_eval_run(root / name, {s: s % 3 != 0 for s in seeds})
 
 
 def test_ablation_table_says_which_runs_it_cannot_pair(tmp_path: Path, capsys) -> None:

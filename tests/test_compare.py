@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from eval_folders import write_eval_run
 
 from so101_sim.cli import main
 from so101_sim.harness import PolicyInfo, StepPolicy, evaluate
@@ -64,14 +65,8 @@ def test_paired_needs_fewer_episodes_than_a_measured_baseline():
 
 def _fake_run(root: Path, name: str, outcomes: dict[int, bool], task: str = "pick_place",
               sha: str = "t" * 64) -> Path:
-    run = root / name
-    run.mkdir(parents=True)
-    info = {"per_episode": [{"seed": s, "success": ok, "actions_sha": f"{name}{s}"}
-                            for s, ok in outcomes.items()],
-            "config": {"policy": name, "policy_fingerprint": name[:4], "task": task,
-                       "task_sha256": sha, "images": f"direct: rendered at 60x80 ({name})"}}
-    (run / "eval_info.json").write_text(json.dumps(info))
-    return run
+    return write_eval_run(root / name, outcomes, task=task, sha=sha,
+                          images=f"direct: rendered at 60x80 ({name})")
 
 
 def test_compare_cli_writes_json_and_markdown(tmp_path, capsys):

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import pytest
+from eval_folders import write_eval_run
 from script_loader import load_script
 
 from so101_sim.cli import main
@@ -18,16 +18,8 @@ TASKS = SHIP_TABLE.shipped_tasks(SHIP_TABLE.SHIPPED)
 
 
 def _eval(folder: Path, task: str, name: str, ok: list[bool]) -> Path:
-    folder.mkdir(parents=True)
-    seeds = range(100_000, 100_000 + len(ok))
-    info = {"per_episode": [{"seed": s, "success": o, "actions_sha": f"{name}{s}",
-                             "failure_mode": None if o else "never_grasped"}
-                            for s, o in zip(seeds, ok, strict=True)],
-            "config": {"policy": name, "policy_fingerprint": name, "task": task,
-                       "task_sha256": "t" * 64, "images": "direct: rendered at 60x80"},
-            "aggregated": {"failure_modes": {"never_grasped": ok.count(False)}}}
-    (folder / "eval_info.json").write_text(json.dumps(info))
-    return folder
+    return write_eval_run(folder, dict(zip(range(100_000, 100_000 + len(ok)), ok, strict=True)),
+                          name=name, task=task)
 
 
 def _ship_dir(root: Path, candidate: dict[str, int]) -> Path:
