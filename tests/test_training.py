@@ -91,6 +91,20 @@ def test_preset_must_set_every_field(tmp_path: Path) -> None:
         load_preset("nope")
 
 
+def test_loader_workers_that_would_not_start_are_refused(tmp_path: Path) -> None:
+    """The trainer has no data loader, so a preset asking for loader workers is told so rather
+    than trained on one process as if it had them; the old `num_workers = 0` still loads."""
+    text = (Path(__file__).parents[1] / "policy" / "presets" / "cpu.toml").read_text()
+    old = tmp_path / "old.toml"
+    old.write_text(text.replace("log_every = 50\n", "log_every = 50\nnum_workers = 0\n"))
+    assert load_preset(old).train.num_workers == 0
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace("log_every = 50\n", "log_every = 50\nnum_workers = 4\n"))
+    with pytest.raises(PresetError, match=r"bad.toml: \[train\] num_workers = 4, but the trainer "
+                                          r"starts no loader workers.*Remove the key"):
+        load_preset(bad)
+
+
 def test_batches_match_lerobot_dataset(dataset: Path, tiny: Path) -> None:
     """gather_batch gives what LeRobotDataset with delta_timestamps gives, padding included."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset

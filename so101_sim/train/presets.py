@@ -43,13 +43,15 @@ class TrainSettings:
     seed: int
     checkpoint_every: int
     log_every: int
-    num_workers: int
     ema_power: float
     ema_max_decay: float
     ema_inv_gamma: float
     ema_min_decay: float
     ema_update_after_step: int
     grad_clip_norm: float = 0.0      # 0: no clipping (the diffusion presets' recipe)
+    # Batches come from the decoded frame cache by array indexing in the training process, so
+    # there are no loader workers; kept so older presets (num_workers = 0) still load.
+    num_workers: int = 0
 
 
 @dataclass(frozen=True)
@@ -160,6 +162,11 @@ def load_preset(name_or_path: str | Path) -> Preset:
         raise PresetError(f"{path}: has policy sections {sections}; expected exactly one of "
                           f"{['[' + t + ']' for t in POLICY_TYPES]}, which names the policy to "
                           "train (see policy/presets/cpu.toml and act.toml)")
+    if settings.num_workers != 0:
+        raise PresetError(f"{path}: [train] num_workers = {settings.num_workers!r}, but the "
+                          "trainer starts no loader workers: it gathers batches from its "
+                          "decoded frame cache in the training process. Remove the key (or set "
+                          "it to 0)")
     policy_type = sections[0]
     policy = _convert_policy(raw[policy_type], policy_type, path)
     augment = raw.get("augment")
