@@ -19,6 +19,10 @@ import numpy as np
 from so101_sim.sim.glcheck import mujoco
 from so101_sim.sim.rendering_probe import BACKENDS, probe_backend
 
+# Geom group of the collision primitives in assets/so101.xml (the meshes are group 2): drawn
+# only when no visual mesh is found.
+COLLISION_GROUP = 3
+
 
 def select_gl_backend() -> str:
     """Return the headless GL backend to use, choosing (and printing) one if MUJOCO_GL is unset.
@@ -101,7 +105,7 @@ class MultiCameraRenderer:
         self._scene.flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = False
         self._scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
         self._opt = mujoco.MjvOption()
-        self._opt.geomgroup[3] = show_collision
+        self._opt.geomgroup[COLLISION_GROUP] = show_collision
         self._pert = mujoco.MjvPerturb()
         self._cams = []
         for name in self.cameras:

@@ -27,8 +27,6 @@ from so101_sim.utils.paths import assets_dir
 from so101_sim.utils.units import MOTOR_NAMES
 
 SCENE_FILE = "scene_pick_place.xml"
-COLLISION_GROUP = 3  # geom group of the collision primitives (drawn only as the fallback)
-VISUAL_GROUP = 2
 TABLE_TEXTURE_SIZE = 64  # texels per side of the procedural table texture
 
 

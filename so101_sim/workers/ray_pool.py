@@ -271,10 +271,6 @@ class RayPool(WorkerPool):
                     raise
                 time.sleep(2.0)
 
-    def actor(self, worker: int) -> Any:
-        """The Ray actor handle of `worker` (tests kill it to check recovery)."""
-        return self._actors[worker]
-
     def info(self) -> PoolInfo:
         return PoolInfo("ray", self.size, list(self._nodes), self.cpus, self.address,
                         self._restarts, self.start_s)
