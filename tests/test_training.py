@@ -82,8 +82,12 @@ def test_preset_must_set_every_field(tmp_path: Path) -> None:
     bad.write_text(text.replace("horizon = 16\n", ""))
     with pytest.raises(PresetError, match="missing \\['horizon'\\]"):
         load_preset(bad)
-    bad.write_text(text + "\nfoo = 1\n".replace("foo", "[diffusion_extra]\nfoo"))
-    load_preset(bad)  # unknown sections are tolerated; unknown [diffusion] keys are not
+    bad.write_text(text + "\n[augmnet]\nbrightness = [0.8, 1.2]\n")  # would train without it
+    with pytest.raises(PresetError, match="unknown key 'augmnet' \\(did you mean 'augment'\\?\\)"):
+        load_preset(bad)
+    bad.write_text(text.replace('normalize = "imagenet"', 'normalize = "imagenet"\nsizes = [1]'))
+    with pytest.raises(PresetError, match="\\[images\\] unknown key 'sizes'"):
+        load_preset(bad)
     bad.write_text(text.replace("horizon = 16\n", "horizon = 16\nhorizonn = 3\n"))
     with pytest.raises(PresetError, match="unknown \\['horizonn'\\]"):
         load_preset(bad)

@@ -3,10 +3,11 @@
 The section that holds the config names the policy: ``[diffusion]`` (`DiffusionConfig`, the
 suite's baselines) or ``[act]`` (`ACTConfig`). A preset must set every field of that config that
 changes the model or its training, so no lerobot default leaks in silently (0.6.1's defaults
-differ from the seed); the loader refuses a preset with a missing or unknown field. Only the
-features (taken from the dataset) and the hub bookkeeping fields are left out. A variant names
-``base = "cpu"`` and sets only what differs. An optional ``[augment]`` section turns on
-lerobot's image transforms for training (`so101_sim.train.augment`).
+differ from the seed); the loader refuses a preset with a missing or unknown field, and any
+section or key it would not read. Only the features (taken from the dataset) and the hub
+bookkeeping fields are left out. A variant names ``base = "cpu"`` and sets only what differs.
+An optional ``[augment]`` section turns on lerobot's image transforms for training
+(`so101_sim.train.augment`).
 """
 
 from __future__ import annotations
@@ -30,6 +31,10 @@ _TUPLE_FIELDS = {"down_dims", "crop_shape", "resize_shape", "optimizer_betas"}
 IMAGE_NORMALIZATIONS = ("imagenet", "dataset")
 #: Policy types a preset can train: the TOML section that holds the lerobot config's fields.
 POLICY_TYPES = ("diffusion", "act")
+# What a preset may hold besides its policy section; anything else is a typo that would
+# otherwise be ignored (an `[augmnet]` section would train without augmentation).
+_PRESET_KEYS = frozenset({"name", "description", "base", "images", "train", "augment"})
+_IMAGE_KEYS = frozenset({"size", "normalize"})
 
 
 class PresetError(ValueError):
@@ -140,10 +145,22 @@ def _read_raw(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     return merged
 
 
+def _refuse_unknown(path: Path, where: str, table: dict[str, Any], known: frozenset[str] | set[str]
+                    ) -> None:
+    unknown = sorted(table.keys() - known)
+    if unknown:
+        key = unknown[0]
+        raise PresetError(f"{path}: {where}unknown key {key!r}{did_you_mean(key, known)}; "
+                          f"expected among {sorted(known)} (see policy/presets/cpu.toml)")
+
+
 def load_preset(name_or_path: str | Path) -> Preset:
     """Read and validate a preset by name (`seed`, `cpu`) or .toml path."""
     path = preset_path(name_or_path)
     raw = _read_raw(path, (path.resolve(),))
+    _refuse_unknown(path, "", raw, _PRESET_KEYS | set(POLICY_TYPES))
+    if isinstance(raw.get("images"), dict):
+        _refuse_unknown(path, "[images] ", raw["images"], _IMAGE_KEYS)
     try:
         images, train = raw["images"], raw["train"]
         size = tuple(int(v) for v in images["size"])
