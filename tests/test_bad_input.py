@@ -166,6 +166,19 @@ def test_faithful_with_another_image_size_is_refused(capsys, tmp_path: Path) -> 
     assert choose_rendering(info, (480, 640), faithful=True).label.startswith("faithful")
 
 
+def test_faithful_for_a_policy_without_cameras_says_it_changes_nothing() -> None:
+    """A state-only policy (the expert) has no training frames to render faithfully: the run's
+    images line says --faithful changed nothing, where it used to read as if it had run."""
+    from so101_sim.harness.frames import choose_rendering
+    from so101_sim.harness.policies import PolicyInfo
+
+    info = PolicyInfo(name="expert", cameras=(), image_size=None)
+    assert choose_rendering(info, None, faithful=True).label == (
+        "no camera input (state only; --faithful changes nothing); videos rendered at 240x320")
+    assert choose_rendering(info, None).label == (
+        "no camera input (state only); videos rendered at 240x320")
+
+
 def test_resume_without_out_is_refused(tmp_path, capsys, monkeypatch):
     """Without --out each run gets a new timestamped folder: --resume there resumed nothing
     and silently ran a fresh evaluation."""

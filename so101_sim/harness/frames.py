@@ -64,7 +64,9 @@ def choose_rendering(info: PolicyInfo, image_size: tuple[int, int] | None,
     an `image_size` other than the recorded one is refused: one of them would be ignored."""
     if not info.cameras:
         size = tuple(image_size) if image_size else VIDEO_ONLY_SIZE
-        return Rendering(size, None, f"no camera input (state only); videos rendered at "
+        # --faithful has no training frames to match here: said, so it is not taken for done.
+        moot = "; --faithful changes nothing" if faithful else ""
+        return Rendering(size, None, f"no camera input (state only{moot}); videos rendered at "
                                      f"{_hw(size)}")
     inp = tuple(info.image_size)
     recorded = tuple(info.train_image_size or inp)
