@@ -48,18 +48,15 @@ def main(argv: list[str] | None = None) -> int:
             print(f"ablation_table: {arg!r} is not LABEL=FOLDER; e.g. 'plain=runs/eval_plain'",
                   file=sys.stderr)
             return 2
-        try:
-            pairs.append((label, load_run(folder)))
-        except (FileNotFoundError, ValueError) as exc:
-            print(f"ablation_table: error: {exc}", file=sys.stderr)
-            return 2
+        pairs.append((label, folder))
+    try:  # a missing folder or runs on other seeds: compare's message, as one line
+        pairs = [(label, load_run(folder)) for label, folder in pairs]
+        for _, side in pairs[1:]:
+            check_comparable(pairs[0][1], side)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"ablation_table: error: {exc}", file=sys.stderr)
+        return 2
     ref_label, ref = pairs[0]
-    for _, side in pairs[1:]:
-        try:
-            check_comparable(ref, side)
-        except ValueError as exc:
-            print(f"ablation_table: error: {exc}", file=sys.stderr)
-            return 2
     print("| run | dataset frames | step | success | 95% CI | failures | "
           f"vs {ref_label} (paired) |")
     print("|---|---|---|---|---|---|---|")
