@@ -832,6 +832,25 @@ def test_an_export_onto_its_own_checkpoint_is_refused_and_the_card_kept(tmp_path
     assert Path("p/README.md").read_text() == card and not Path("p/copy").exists()
 
 
+def test_an_export_of_a_run_folder_names_its_checkpoint_not_the_out(tmp_path: Path,
+                                                                     capsys, monkeypatch) -> None:
+    """`so101-sim export RUN --out RUN/shipped` said only that --out lay inside "the
+    checkpoint" RUN, which is no checkpoint: the error is the folder, and its policy is named."""
+    from so101_sim.cli import main
+
+    model = tmp_path / "run" / "pretrained_model"
+    model.mkdir(parents=True)
+    for name in ("config.json", "so101_sim_train.json"):
+        (model / name).write_text("{}")
+    (model / "model.safetensors").write_bytes(b"")
+    monkeypatch.chdir(tmp_path)
+    assert main(["export", "run", "--out", "run/shipped"]) == 2
+    err = capsys.readouterr().err
+    assert ("so101-sim export: error: run is not a so101-sim checkpoint (needs model.safetensors "
+            "and so101_sim_train.json); did you mean run/pretrained_model?") in err
+    assert "lies inside" not in err and not Path("run/shipped").exists()
+
+
 def test_explain_refuses_an_out_that_is_a_dataset_or_a_checkpoint(tmp_path: Path) -> None:
     """`explain --out DATA` wrote explain.html and explain.json among a dataset's files."""
     from so101_sim.explain import explain

@@ -329,7 +329,6 @@ def export_policy(checkpoint: Path, dest: Path,
     `eval_dir`: one eval folder, several (one per task), or a multi-task suite eval folder;
     each must have measured these weights. `replace`: `dest` may hold another policy."""
     checkpoint, dest = Path(checkpoint), Path(dest)
-    check_not_itself(checkpoint, dest)
     info_path = checkpoint / TRAIN_INFO
     if not (checkpoint / "model.safetensors").is_file() or not info_path.is_file():
         # only folders export takes: a lerobot-train checkpoint has no so101-sim sidecar
@@ -340,6 +339,7 @@ def export_policy(checkpoint: Path, dest: Path,
                                 + (f"did you mean {near}?" if near else other_kind(checkpoint) +
                                    "pass a run's pretrained_model folder (RUN/pretrained_model "
                                    "or RUN/checkpoints/step_*/pretrained_model)"))
+    check_not_itself(checkpoint, dest)  # after: a folder that is no checkpoint is the error
     check_processor_files(checkpoint)  # never ship a file that would run code when loaded
     check_readable(checkpoint)
     dirs = [] if eval_dir is None else [eval_dir] if isinstance(eval_dir, (str, Path)) \
