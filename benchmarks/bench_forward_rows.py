@@ -153,5 +153,6 @@ def main() -> None:
         print(f"| {n} | {f * 1e3:.1f} | {e * 1e3:.1f} | {(f - e) * 1e3:.1f} | "
               f"{per_row * 1e3:.2f} | {per_row / first:.2f}x | {'yes' if same else 'no'} |")
 
+
 if __name__ == "__main__":
     main()

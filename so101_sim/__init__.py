@@ -15,7 +15,6 @@ __version__ = "0.1.0"
 ENV_ID = "so101_sim/PickPlace-v0"
 
 
-
 def task_env_id(task: str) -> str:
     """The Gymnasium id of a task of ``envs/``, e.g. ``pick_place_dr`` ->
     ``so101_sim/PickPlaceDr-v0``."""

@@ -102,6 +102,7 @@ def test_a_lerobot_command_reports_a_bad_env_value_in_one_line(monkeypatch, caps
     monkeypatch.setattr(sys, "excepthook", lambda *a: reported.append(a[1]))
     assert not one_line_errors("/usr/bin/python")  # not a lerobot command: nothing installed
     assert one_line_errors("/venv/bin/lerobot-eval") and one_line_errors("lerobot-eval")
+
     @dataclass
     class Command:  # a lerobot command's config, as lerobot-eval's has an `env` field
         env: EnvConfig | None = None

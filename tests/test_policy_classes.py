@@ -60,7 +60,6 @@ def test_temporal_ensembling_matches_lerobots_own_select_action(tmp_path):
         np.testing.assert_allclose(got[0, 0], want[0], rtol=1e-5, atol=1e-4)
 
 
-
 def test_two_forwards_at_once_each_get_their_own_actions(tmp_path):
     """harness.forwards runs two predict_chunks at once on threads. lerobot's processor steps
     keep the transition in flight in an attribute, so unguarded they swapped observations
@@ -116,6 +115,7 @@ def test_ensembling_checks_the_whole_chunk_for_batch_independence(tmp_path, monk
     policy = LeRobotPolicy(ckpt, batch_size=2, log=messages.append)
     assert policy.batch_size == (1 if later_steps_see_the_row else 2)
     assert any("depend on its position" in m for m in messages) == later_steps_see_the_row
+
 
 def _actions(policy: LeRobotPolicy, steps: int) -> np.ndarray:
     """Each forward's executed actions for two envs fed the same random frames."""

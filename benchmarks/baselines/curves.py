@@ -79,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"| run | task | step | {'idle CPU h' if rate else 'trainer h'} | success | 95% CI "
           "| failures |")
     print("|---|---|---|---|---|---|---|")
+
     def wanted(row: dict) -> bool:
         return args.episodes is None or row.get("episodes") == args.episodes
 

@@ -86,7 +86,6 @@ def codec_of(features: dict[str, Any]) -> str | None:
     return {"av1": "libsvtav1"}.get(codec, codec)
 
 
-
 def encoder_config(vcodec: str, features: dict[str, Any] | None = None) -> Any:
     """lerobot encoder config: the dataset's own settings when it has videos, else ours."""
     from lerobot.configs.video import RGBEncoderConfig

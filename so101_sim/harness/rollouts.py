@@ -35,7 +35,6 @@ DEFAULT_REPO_ID = "local/so101_eval_rollouts"
 CHECKPOINT_EVERY = 50
 
 
-
 def check_resume_target(out: Path, config_path: Path, save_rollouts: str | None) -> None:
     """Refuse ``--resume`` with another ``--save-rollouts`` than the run started with (its
     finished episodes would be missing from the new folder, or never recorded)."""

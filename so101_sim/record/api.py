@@ -70,8 +70,6 @@ def _check_args(n_episodes: int, workers: int, seed_start: int, vcodec: str | No
     check_seed_range(seed_start, 1 if resuming else n_episodes)
 
 
-
-
 DEFAULT_TASK, DEFAULT_IMAGE_SIZE = "pick_place", (480, 640)
 
 

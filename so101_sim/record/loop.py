@@ -29,8 +29,6 @@ from so101_sim.workers import start_pool
 MAX_RETRIES = 2  # a seed whose worker died this many times more is an error
 
 
-
-
 @dataclass
 class Tally:
     """Counts, sidecar and progress bar of one recording."""

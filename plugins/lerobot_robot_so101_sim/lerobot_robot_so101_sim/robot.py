@@ -42,6 +42,7 @@ from so101_sim.utils.units import FEATURE_NAMES
 
 logger = logging.getLogger(__name__)
 
+
 @dataclass
 class _Episode:
     """One sim episode: its seed and what lerobot did with it."""
