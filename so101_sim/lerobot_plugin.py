@@ -51,9 +51,9 @@ from so101_sim.policy_frames import (
     refuse_or_warn,
     size_warning,
 )
-from so101_sim.sim import OBS_TYPES, env_state_size
+from so101_sim.sim import IMAGE_SIZE, OBS_TYPES, env_state_size
 from so101_sim.sim.env_args import check_cameras
-from so101_sim.tasks import ALL_CAMERAS, load_task, loads_here
+from so101_sim.tasks import ALL_CAMERAS, DEFAULT_TASK, load_task, loads_here
 from so101_sim.train.checkpoint import TASK_KEY, demos_of
 from so101_sim.utils.lerobot_cli import add_explainer, config_errors, one_line_errors, say
 from so101_sim.utils.units import FEATURE_NAMES
@@ -65,8 +65,6 @@ from so101_sim.workers.local import start_fork_server
 __path__: list[str] = []
 
 ENV_TYPE = "so101_pick_place"
-DEFAULT_TASK = "pick_place"  # a policy or dataset on the command line may set another
-DEFAULT_FRAME = (480, 640)  # the recorded size; a policy on the command line may set another
 ACTION_DIM = len(FEATURE_NAMES)
 one_line_errors()  # a lerobot command given a bad --env.* value says so in one line
 add_explainer(missing_config_line)  # and a --policy.path that is a run folder
@@ -87,8 +85,8 @@ class SO101PickPlaceEnvConfig(EnvConfig):
     fps: int | None = None  # None: the task's [episode] fps (another value is refused)
     episode_length: int | None = None  # TimeLimit for lerobot-eval; None: the task's max_steps
     obs_type: str = "pixels_agent_pos"
-    image_height: int = DEFAULT_FRAME[0]  # default: the command line's policy's input size
-    image_width: int = DEFAULT_FRAME[1]
+    image_height: int = IMAGE_SIZE[0]  # default: the command line's policy's input size
+    image_width: int = IMAGE_SIZE[1]
     # None: the cameras the command line's policy folder (or lerobot-train's dataset) reads
     # where the sim has them all, else the task's; e.g. --env.cameras='[front,side,wrist]'
     cameras: list[str] | None = None
@@ -139,10 +137,10 @@ class SO101PickPlaceEnvConfig(EnvConfig):
             # are: left at the defaults, they would be the wrong picture (or a missing camera)
             # for any policy trained on other ones
             taken += self._take_cameras(spec.cameras, data)
-            if (self.image_height, self.image_width) == DEFAULT_FRAME:
+            if (self.image_height, self.image_width) == IMAGE_SIZE:
                 sized = policy_frame_size(sys.argv, self.cameras or spec.cameras)
                 size = sized[0] if sized else data.frame_size(sys.argv) if data else None
-                if size is not None and size != DEFAULT_FRAME:
+                if size is not None and size != IMAGE_SIZE:
                     self.image_height, self.image_width = size
                     taken.append(f"{size[0]}x{size[1]} frames")
         # what came from the policy is said when the envs are built, with this note

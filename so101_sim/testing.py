@@ -47,6 +47,7 @@ from typing import Any
 
 from so101_sim.dataset import EVAL_SEED_START
 from so101_sim.harness.stats import p_value_below, wilson_interval
+from so101_sim.tasks import DEFAULT_TASK
 
 
 @dataclass(frozen=True)
@@ -141,7 +142,7 @@ class CurtailedTest:
 
 
 def assert_success_rate(policy: Any, *, baseline: float, episodes: int,
-                        alpha: float = 0.01, task: str = "pick_place",
+                        alpha: float = 0.01, task: str = DEFAULT_TASK,
                         seed_start: int = EVAL_SEED_START, n_envs: int = 2,
                         out_dir: str | Path | None = None, **evaluate_kwargs: Any) -> RateCheck:
     """Evaluate `policy` ("expert", a checkpoint directory or an ``EvalPolicy``) on

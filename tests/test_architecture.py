@@ -160,6 +160,20 @@ def test_import_so101_sim_and_its_faces_stay_light():
     assert r.stdout.strip() == "[]"
 
 
+def test_the_cli_spells_out_the_packages_defaults():
+    # The CLI writes them as literals, so that it does not import the tasks and dataset
+    # packages to build its parser; they must still be the package's own.
+    from so101_sim.cli import build_parser
+    from so101_sim.cli.commands import EVAL_DEFAULTS
+    from so101_sim.dataset import EVAL_SEED_START
+    from so101_sim.tasks import DEFAULT_TASK
+
+    assert (EVAL_DEFAULTS["task"], EVAL_DEFAULTS["seed_start"]) == (DEFAULT_TASK, EVAL_SEED_START)
+    parser = build_parser()
+    assert parser.parse_args(["demo"]).task == DEFAULT_TASK
+    assert parser.parse_args(["curve", "run"]).seed_start == EVAL_SEED_START
+
+
 @pytest.mark.parametrize(("old", "new", "name"), [
     ("so101_sim.env", "so101_sim.sim", "SO101Env"),
     ("so101_sim.recording", "so101_sim.record", "record"),

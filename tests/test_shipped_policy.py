@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 
 from so101_sim.harness.baselines import baselines
-from so101_sim.harness.curve import DEFAULT_TASK
 from so101_sim.harness.export import recorded_eval
 from so101_sim.harness.stats import critical_successes, power_below, wilson_interval
+from so101_sim.tasks import DEFAULT_TASK
 from so101_sim.testing import assert_success_rate
 from so101_sim.utils.paths import policy_dir, shipped_policy_dir
 

@@ -14,6 +14,7 @@ from so101_sim.utils.text import counted
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from so101_sim.record.demo import contact_sheet, parse_grid, run_demo
+    from so101_sim.sim import IMAGE_SIZE
 
     if args.grid:  # one PNG of many seeds' first frames
         if args.steps is not None:
@@ -24,7 +25,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(f"contact sheet: {sheet}")
         return 0
     paths = run_demo(Path(args.out), steps=240 if args.steps is None else args.steps,
-                     image_size=args.image_size or (480, 640),
+                     image_size=args.image_size or IMAGE_SIZE,
                      seed=args.seed, task=args.task)
     for name, path in paths.items():
         print(f"{name}: {path}")
@@ -108,7 +109,8 @@ def interrupted_train(out: Path) -> str:
             "again" + (" (the frames decoded so far are kept in its frame_cache)" if kept else ""))
 
 
-# eval's flags that --against decides, and those that mean something only with it
+# eval's flags that --against decides, and those that mean something only with it (the
+# package's DEFAULT_TASK and EVAL_SEED_START, spelled out: the CLI imports neither package)
 EVAL_DEFAULTS = {"task": "pick_place", "episodes": 50, "seed_start": 100_000}
 AGAINST_DEFAULTS = {"margin": 0.0, "indifference": 0.10, "alpha": 0.05}
 
@@ -257,10 +259,11 @@ def _checkpoint_dir(args: argparse.Namespace) -> Path | None:
 
 def cmd_curve(args: argparse.Namespace) -> int:
     from so101_sim.harness.curve import curve_variant, evaluate_curve, plot_curve
+    from so101_sim.tasks import DEFAULT_TASK
 
     run = Path(args.run)
     if args.task is None:  # the task of the run's demos, as eval's default
-        from so101_sim.harness.curve import DEFAULT_TASK, run_checkpoints
+        from so101_sim.harness.curve import run_checkpoints
         from so101_sim.harness.trained_on import default_task
 
         saved = run_checkpoints(run) if run.is_dir() else []
@@ -282,7 +285,7 @@ def cmd_curve(args: argparse.Namespace) -> int:
     # One plot per curve: a variant (e.g. temporal ensembling) never overwrites the
     # checkpoints' own curve.
     task, variant = Path(args.task).stem, curve_variant(options)
-    name = "eval_curve" + ("" if task == "pick_place" else f"_{task}") + \
+    name = "eval_curve" + ("" if task == DEFAULT_TASK else f"_{task}") + \
         (f"-{variant}" if variant else "") + ".png"
     title = f"{task}: closed-loop success" + (f" ({variant})" if variant else "")
     print(f"plot: {plot_curve(rows, run / name, title=title)}")

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from so101_sim.expert.kinematics import TopDownIK
-from so101_sim.tasks import PlanContext, TaskSpec, get_kind, load_task
+from so101_sim.tasks import DEFAULT_TASK, PlanContext, TaskSpec, get_kind, load_task
 
 if TYPE_CHECKING:
     import mujoco
@@ -54,7 +54,7 @@ class _Segment:
 class ScriptedExpert:
     """Policy-like object: ``reset(seed)`` then ``select_action(obs)`` every step."""
 
-    def __init__(self, task: str | TaskSpec = "pick_place", clearance: float = 0.004,
+    def __init__(self, task: str | TaskSpec = DEFAULT_TASK, clearance: float = 0.004,
                  hover: float = 0.06, carry_height: float = 0.08, jitter: bool = True,
                  recover: bool = False, max_retries: int = 2,
                  model: mujoco.MjModel | None = None) -> None:

@@ -20,6 +20,7 @@ from typing import Any
 
 from so101_sim.dataset.interrupts import Interrupts
 from so101_sim.harness.stats import wilson_interval
+from so101_sim.tasks import DEFAULT_TASK
 from so101_sim.train.checkpoint import read_train_info
 from so101_sim.utils.atomic import append_line
 from so101_sim.utils.locks import folder_lock
@@ -27,7 +28,6 @@ from so101_sim.utils.locks import folder_lock
 CURVE_FILE = "eval_curve.jsonl"
 CURVE_LOCK = ".so101-curve.lock"  # not train's lock: a curve may run while training goes on
 _STEP = re.compile(r"step_(\d+)$")
-DEFAULT_TASK = "pick_place"  # as `so101-sim eval`
 
 
 def run_checkpoints(run: Path) -> list[tuple[int, Path]]:

@@ -14,11 +14,11 @@ import shutil
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from so101_sim.harness.curve import DEFAULT_TASK, plot_curve, read_curve, widest_rows
+from so101_sim.harness.curve import plot_curve, read_curve, widest_rows
 from so101_sim.harness.policies.checks import ACT_TRAINING_ONLY, weights_digest
 from so101_sim.harness.results import INFO, check_eval_info
 from so101_sim.harness.trained_on import check_unseen_seeds
-from so101_sim.tasks import TaskSpecError, load_task
+from so101_sim.tasks import DEFAULT_TASK, TaskSpecError, load_task
 from so101_sim.train.checkpoint import (
     TRAIN_INFO,
     checkpoint_name,

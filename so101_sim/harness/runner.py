@@ -41,7 +41,7 @@ from so101_sim.harness.results import (
 )
 from so101_sim.harness.trained_on import check_unseen_seeds
 from so101_sim.harness.warmup import worker_preload
-from so101_sim.tasks import TaskSpec, load_task, task_ref
+from so101_sim.tasks import DEFAULT_TASK, TaskSpec, load_task, task_ref
 from so101_sim.utils.devices import eval_policy_threads, torch_threads, workers_that_fit
 from so101_sim.utils.disk import note_default_out
 from so101_sim.utils.locks import lock_scope
@@ -67,7 +67,7 @@ class _Slot:
 
 
 @lock_scope  # releases the folder locks lock_eval_folders takes
-def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = "pick_place",
+def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = DEFAULT_TASK,
              episodes: int = 50,
              n_envs: int = 16, seed_start: int = EVAL_SEED_START, out_dir: str | Path | None = None,
              videos: int = 2, image_size: tuple[int, int] | None = None, resume: bool = False,

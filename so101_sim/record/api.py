@@ -40,10 +40,10 @@ from so101_sim.dataset.schema import (
 )
 from so101_sim.dataset.store import SCRATCH, SIDECAR, read_sidecar
 from so101_sim.record.episode import check_dart_noise, expert_options
-from so101_sim.sim import SO101Env
+from so101_sim.sim import IMAGE_SIZE, SO101Env
 from so101_sim.sim.env_args import check_cameras
 from so101_sim.sim.rendering import select_gl_backend
-from so101_sim.tasks import load_task
+from so101_sim.tasks import DEFAULT_TASK, load_task
 from so101_sim.utils.devices import RECORD_WORKER_MB, cpu_count, workers_that_fit
 from so101_sim.utils.locks import folder_lock
 from so101_sim.utils.text import counted
@@ -68,9 +68,6 @@ def _check_args(n_episodes: int, workers: int, seed_start: int, vcodec: str | No
                          "--checkpoint-every 50")
     # a new dataset needs at least one seed per episode (more if the expert fails some)
     check_seed_range(seed_start, 1 if resuming else n_episodes)
-
-
-DEFAULT_TASK, DEFAULT_IMAGE_SIZE = "pick_place", (480, 640)
 
 
 def _task_arg(task: str | Path | None, stored: dict[str, Any], root: Path) -> str:
@@ -143,7 +140,7 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path | None = None,
         stored = read_sidecar(root) if resume and (root / SIDECAR).exists() else {}
         task_arg = _task_arg(task, stored, root)
         if image_size is None:
-            image_size = stored.get("image_size") or DEFAULT_IMAGE_SIZE
+            image_size = stored.get("image_size") or IMAGE_SIZE
         image_size = (int(image_size[0]), int(image_size[1]))
         spec = load_task(task_arg)
         if spec.fps != 30:
@@ -214,7 +211,7 @@ def replay(dataset_dir: str | Path, episode: int) -> float:
     actions = np.stack([np.asarray(a, dtype=np.float32) for a in ep[act_key]])
     if note is None:
         seed = int(np.asarray(ep["episode_seed"].iloc[0]).reshape(-1)[0])
-        task, steps = read_sidecar(root).get("task", "pick_place"), len(states)
+        task, steps = read_sidecar(root).get("task", DEFAULT_TASK), len(states)
     else:
         seed, task = note["seed"], note["task"]
         steps = note["steps"] if type(note.get("steps")) is int else len(states)

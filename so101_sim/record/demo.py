@@ -10,7 +10,8 @@ import imageio.v2 as imageio
 import numpy as np
 from tqdm import tqdm
 
-from so101_sim.sim.env import PickPlaceEnv
+from so101_sim.sim.env import IMAGE_SIZE, PickPlaceEnv
+from so101_sim.tasks import DEFAULT_TASK
 from so101_sim.utils.mp4 import H264Writer
 from so101_sim.utils.paths import foreign_folder
 
@@ -47,8 +48,8 @@ def _make_folder(out_dir: Path) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
 
 
-def run_demo(out_dir: Path, steps: int = 240, image_size: tuple[int, int] = (480, 640),
-             seed: int = 0, task: str = "pick_place") -> dict[str, Path]:
+def run_demo(out_dir: Path, steps: int = 240, image_size: tuple[int, int] = IMAGE_SIZE,
+             seed: int = 0, task: str = DEFAULT_TASK) -> dict[str, Path]:
     """Write demo.mp4 (front|side) and one PNG per camera (the last frame) into `out_dir`."""
     _make_folder(out_dir)
     env = PickPlaceEnv(task=task, image_size=image_size, render_mode="rgb_array")

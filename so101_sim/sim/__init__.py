@@ -10,11 +10,12 @@ from so101_sim.sim.env import (
     CAMERAS,
     ENV_STATE_SIZE,
     FAILURE_MODES,
+    IMAGE_SIZE,
     OBS_TYPES,
     PickPlaceEnv,
     SO101Env,
     env_state_size,
 )
 
-__all__ = ["CAMERAS", "ENV_STATE_SIZE", "FAILURE_MODES", "OBS_TYPES", "PickPlaceEnv", "SO101Env",
-           "env_state_size"]
+__all__ = ["CAMERAS", "ENV_STATE_SIZE", "FAILURE_MODES", "IMAGE_SIZE", "OBS_TYPES", "PickPlaceEnv",
+           "SO101Env", "env_state_size"]

@@ -17,11 +17,12 @@ from so101_sim.sim.glcheck import mujoco
 from so101_sim.sim.rendering import MultiCameraRenderer
 from so101_sim.sim.reset_options import Workspace, apply_reset_options, workspace
 from so101_sim.sim.scene import SceneIds, build_model, mesh_grid_for
-from so101_sim.tasks import DEFAULT_CAMERAS, TaskSpec, get_kind, load_task
+from so101_sim.tasks import DEFAULT_CAMERAS, DEFAULT_TASK, TaskSpec, get_kind, load_task
 from so101_sim.tasks.kind import ENV_STATE_BASE
 from so101_sim.utils.units import lerobot_to_radians, radians_to_lerobot
 
 OBS_TYPES = ("pixels_agent_pos", "pixels_agent_pos_env_state", "state")
+IMAGE_SIZE = (480, 640)  # (height, width) of the demos: the reference dataset's cameras, 640x480
 CAMERAS = DEFAULT_CAMERAS  # "wrist" is the third (ALL_CAMERAS)
 FAILURE_MODES = get_kind("pick_place").failure_modes
 ENV_STATE_SIZE = ENV_STATE_BASE  # pick_place: cube position (3) + quaternion wxyz (4) + goal (3)
@@ -108,9 +109,9 @@ class SO101Env(gym.Env):
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 30}
 
-    def __init__(self, task: str | Path | TaskSpec = "pick_place",
+    def __init__(self, task: str | Path | TaskSpec = DEFAULT_TASK,
                  obs_type: str = "pixels_agent_pos",
-                 image_size: tuple[int, int] = (480, 640),
+                 image_size: tuple[int, int] = IMAGE_SIZE,
                  render_mode: str | None = None,
                  cameras: Sequence[str] | None = None,
                  mesh_width: int | None = None) -> None:

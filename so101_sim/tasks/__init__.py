@@ -23,6 +23,7 @@ from so101_sim.tasks.layouts import PAN_AXIS_XY, Layout
 from so101_sim.tasks.spec import (
     ALL_CAMERAS,
     DEFAULT_CAMERAS,
+    DEFAULT_TASK,
     TaskSpec,
     TaskSpecError,
     available_tasks,
@@ -33,10 +34,10 @@ from so101_sim.tasks.spec import (
     task_ref,
 )
 
-__all__ = ["ALL_CAMERAS", "DEFAULT_CAMERAS", "PAN_AXIS_XY", "Layout", "PlanContext", "TaskKind",
-           "TaskSpec", "TaskSpecError", "Tracker", "available_tasks", "failure_modes",
-           "get_kind", "load_task", "loads_here", "parse_task", "register_kind", "registered_kinds",
-           "resolve_task_path", "sample_layout", "task_ref"]
+__all__ = ["ALL_CAMERAS", "DEFAULT_CAMERAS", "DEFAULT_TASK", "PAN_AXIS_XY", "Layout",
+           "PlanContext", "TaskKind", "TaskSpec", "TaskSpecError", "Tracker", "available_tasks",
+           "failure_modes", "get_kind", "load_task", "loads_here", "parse_task", "register_kind",
+           "registered_kinds", "resolve_task_path", "sample_layout", "task_ref"]
 
 
 def failure_modes(kind: str) -> tuple[str, ...]:

@@ -29,6 +29,7 @@ from so101_sim.utils.text import did_you_mean
 Range = tuple[float, float]
 ALL_CAMERAS = ("front", "side", "wrist")
 DEFAULT_CAMERAS = ("front", "side")
+DEFAULT_TASK = "pick_place"  # the task file every command and API uses when given none
 
 
 class TaskSpecError(ValueError):
@@ -241,7 +242,7 @@ def task_ref(spec: TaskSpec) -> str:
     return str(source.resolve())
 
 
-def load_task(task: str | Path | TaskSpec = "pick_place") -> TaskSpec:
+def load_task(task: str | Path | TaskSpec = DEFAULT_TASK) -> TaskSpec:
     """Load and validate a task spec by name or path."""
     if isinstance(task, TaskSpec):
         return task

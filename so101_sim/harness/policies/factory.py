@@ -10,7 +10,7 @@ from typing import Any
 from so101_sim.expert import ScriptedExpert
 from so101_sim.harness.policies.checks import flag_names
 from so101_sim.harness.policies.protocol import EvalPolicy, PolicyInfo, StepPolicy
-from so101_sim.tasks import TaskSpec, load_task
+from so101_sim.tasks import DEFAULT_TASK, TaskSpec, load_task
 
 
 def refuse_options(options: dict[str, Any], policy: str) -> None:
@@ -23,7 +23,7 @@ def refuse_options(options: dict[str, Any], policy: str) -> None:
                          f"{'them' if len(options) > 1 else 'it'}")
 
 
-def expert_policy(task: str | Path | TaskSpec = "pick_place") -> StepPolicy:
+def expert_policy(task: str | Path | TaskSpec = DEFAULT_TASK) -> StepPolicy:
     """The scripted expert as an ``EvalPolicy`` (reads the true cube pose: no cameras)."""
     spec = load_task(task)
     return StepPolicy(lambda: ScriptedExpert(spec),
@@ -31,7 +31,7 @@ def expert_policy(task: str | Path | TaskSpec = "pick_place") -> StepPolicy:
                                  fingerprint=f"so101_sim.expert.ScriptedExpert/{spec.name}"))
 
 
-def load_policy(spec: str | Path, task: str | Path | TaskSpec = "pick_place",
+def load_policy(spec: str | Path, task: str | Path | TaskSpec = DEFAULT_TASK,
                 **lerobot_options: Any) -> EvalPolicy:
     """``"expert"``, ``"baseline"`` (the shipped checkpoint for `task`), a lerobot checkpoint
     directory, or ``"package.module:factory"`` (a callable taking ``task`` and returning an
