@@ -4,8 +4,10 @@ names they give in the package exist."""
 from __future__ import annotations
 
 import importlib
+import inspect
 import re
 import shlex
+import sys
 import warnings
 from pathlib import Path
 
@@ -15,18 +17,22 @@ ROOT = Path(__file__).resolve().parents[1]
 COMMAND = re.compile(r"(?:\S*/)?so101-sim\s+(.*)")  # so101-sim ..., .venv/bin/so101-sim ...
 
 
-def shown_commands(path: Path) -> list[str]:
-    """`so101-sim` command lines of `path`: in ```bash blocks, or indented 4 spaces."""
+def shown_lines(path: Path) -> list[str]:
+    """The shell lines of `path`, comments cut: in ```bash blocks, or indented 4 spaces."""
     found, fenced, lang = [], False, ""
     text = path.read_text().replace("\\\n", " ")  # a continued command is one line
     for line in text.splitlines():
         if line.startswith("```"):
             fenced, lang = not fenced, line[3:].strip()
             continue
-        shown = (fenced and lang in ("bash", "")) or (not fenced and line.startswith("    "))
-        if shown and (m := COMMAND.match(line.strip().split(" #")[0])):
-            found.append(m.group(1))
+        if (fenced and lang in ("bash", "")) or (not fenced and line.startswith("    ")):
+            found.append(line.strip().split(" #")[0])
     return found
+
+
+def shown_commands(path: Path) -> list[str]:
+    """The arguments of each `so101-sim` command line `path` shows."""
+    return [m.group(1) for line in shown_lines(path) if (m := COMMAND.match(line))]
 
 
 @pytest.mark.parametrize("doc", ["README.md", "benchmarks/README.md"])
@@ -82,3 +88,68 @@ def test_the_package_names_the_docs_give_exist() -> None:
     missing = [f"{place}: {name}" for name, places in where.items() if not resolves(name)
                for place in places]
     assert missing == []
+
+
+# each lerobot command the docs show: the module its console script (or `python -m`) runs, and
+# the function there whose config the command line fills
+LEROBOT_COMMANDS = {
+    "lerobot-record": ("lerobot.scripts.lerobot_record", "record"),
+    "lerobot-replay": ("lerobot.scripts.lerobot_replay", "replay"),
+    "lerobot-teleoperate": ("lerobot.scripts.lerobot_teleoperate", "teleoperate"),
+    "lerobot-rollout": ("lerobot.scripts.lerobot_rollout", "rollout"),
+    "lerobot-eval": ("lerobot.scripts.lerobot_eval", "eval_main"),
+    "lerobot-train": ("lerobot.scripts.lerobot_train", "train"),
+    "python -m lerobot.async_inference.policy_server": (
+        "lerobot.async_inference.policy_server", "serve"),
+    "python -m lerobot.async_inference.robot_client": (
+        "lerobot.async_inference.robot_client", "async_client"),
+}
+LEROBOT_COMMAND = re.compile(r"(lerobot-[a-z-]+|python -m lerobot\.[\w.]+)\s+(.*)")
+
+
+def parse_as_lerobot_does(command: str, args: list[str], monkeypatch) -> object:
+    """The config `command` builds from `args` before it starts any work: lerobot's own
+    parser (its `.path` and plugin handling for the `lerobot-*` scripts, draccus for the
+    async modules), then `validate()`, which lerobot-train runs first."""
+    import draccus
+    from lerobot.configs import parser
+
+    module, name = LEROBOT_COMMANDS[command]
+    inner = getattr(importlib.import_module(module), name).__wrapped__
+    spec = inspect.getfullargspec(inner)
+    config_class = spec.annotations[spec.args[0]]
+    monkeypatch.setattr(sys, "argv", [command, *args])  # the `.path` fields read argv
+    if command.startswith("python -m"):
+        cfg = draccus.parse(config_class=config_class, args=args)
+    else:
+        def capture(cfg):
+            return cfg
+        capture.__annotations__ = {"cfg": config_class}
+        cfg = parser.wrap()(capture)()
+    if hasattr(cfg, "validate"):
+        cfg.validate()
+    return cfg
+
+
+def test_documented_lerobot_commands_parse(monkeypatch, capsys) -> None:
+    # lerobot's CLIs fail on an unknown or misspelt flag, or a bad value of the sim's robot and
+    # env configs, before anything runs; tests/test_lerobot_robot.py runs them with test sizes
+    from lerobot.utils.import_utils import register_third_party_plugins
+
+    register_third_party_plugins()  # what each lerobot entry point does first
+    monkeypatch.chdir(ROOT)  # the docs' relative paths (policy/pick_place_diffusion)
+    shown = []
+    for doc in sorted({ROOT / "README.md", *ROOT.glob("docs/*.md"),
+                       *ROOT.glob("benchmarks/**/*.md"), *ROOT.glob("plugins/*/README.md")}):
+        for line in shown_lines(doc):
+            if m := LEROBOT_COMMAND.match(line):
+                shown.append((doc.relative_to(ROOT), m.group(1), m.group(2)))
+    assert {command for _, command, _ in shown} == set(LEROBOT_COMMANDS)
+    refused = []
+    for doc, command, args in shown:
+        try:
+            parse_as_lerobot_does(command, shlex.split(args), monkeypatch)
+        except (SystemExit, Exception) as e:  # argparse exits; a config's checks raise
+            said = capsys.readouterr().err.strip().splitlines()
+            refused.append(f"{doc}: {command} {args}\n  -> {said[-1] if said else repr(e)}")
+    assert refused == [], "\n".join(refused)

@@ -47,9 +47,10 @@ def _env(tmp: Path) -> dict[str, str]:
 
 
 def _run(cmd: list[str], tmp: Path, timeout: float = 300) -> subprocess.CompletedProcess:
-    """A console script as a person runs it, minus the terminal (no keyboard listener)."""
+    """A console script as a person runs it, minus the terminal (no keyboard listener), from
+    `tmp`: lerobot's async server and client write their logs/ under the cwd."""
     return subprocess.run([str(c) for c in cmd], stdin=subprocess.DEVNULL, capture_output=True,
-                          text=True, timeout=timeout, env=_env(tmp), check=False)
+                          text=True, timeout=timeout, env=_env(tmp), cwd=tmp, check=False)
 
 
 def _outcomes(path: Path) -> list[dict]:
@@ -733,7 +734,7 @@ def test_async_inference_drives_the_sim(tmp_path):
     server = subprocess.Popen([sys.executable, "-m", "lerobot.async_inference.policy_server",
                                "--host=127.0.0.1", f"--port={port}", "--fps=30"],
                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL, env=_env(tmp_path))
+                              stderr=subprocess.DEVNULL, env=_env(tmp_path), cwd=tmp_path)
     try:
         end = time.monotonic() + 120
         while not _listening(port):
