@@ -7,6 +7,7 @@ import importlib
 import inspect
 import re
 import shlex
+import subprocess
 import sys
 import warnings
 from pathlib import Path
@@ -153,3 +154,33 @@ def test_documented_lerobot_commands_parse(monkeypatch, capsys) -> None:
             said = capsys.readouterr().err.strip().splitlines()
             refused.append(f"{doc}: {command} {args}\n  -> {said[-1] if said else repr(e)}")
     assert refused == [], "\n".join(refused)
+
+
+def python_blocks(path: Path, heading: str) -> list[str]:
+    """The ```python blocks of the section `heading` of `path`, in order."""
+    section = path.read_text().split(f"\n{heading}\n", 1)[1].split("\n## ", 1)[0]
+    return re.findall(r"```python\n(.*?)```", section, flags=re.S)
+
+
+def test_the_task_kind_example_in_the_docs_runs(tmp_path) -> None:
+    # a reader copies the kind into a module of theirs and runs the two lines that follow it;
+    # in a process of its own, as it registers "shelf" over tests/shelf_kind.py's
+    kind, use = python_blocks(ROOT / "docs/architecture.md", "## Adding a task kind")
+    (tmp_path / "my_kinds.py").write_text(kind)
+    assert '"path/to/shelf.toml"' in use
+    use = use.replace('"path/to/shelf.toml"', repr(str(ROOT / "tests/shelf.toml")))
+    script = "\n".join([
+        "import my_kinds", use,
+        "obs, _ = env.reset(seed=0)",
+        "expert.reset(0)",
+        "done = False",
+        "while not done:",
+        "    obs, reward, terminated, truncated, info = env.step(expert.select_action(obs))",
+        "    done = terminated or truncated",
+        "print(env.task.kind, info['is_success'], info['failure_mode'], env.cube_pos(0)[2])"])
+    run = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True,
+                         text=True, timeout=300, check=False)
+    assert run.returncode == 0, run.stderr[-3000:]
+    kind_name, success, failure, height = run.stdout.split()[-4:]
+    assert (kind_name, success, failure) == ("shelf", "True", "None")
+    assert float(height) > 0.02  # on the board, not on the table beside it
