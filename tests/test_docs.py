@@ -184,3 +184,21 @@ def test_the_task_kind_example_in_the_docs_runs(tmp_path) -> None:
     kind_name, success, failure, height = run.stdout.split()[-4:]
     assert (kind_name, success, failure) == ("shelf", "True", "None")
     assert float(height) > 0.02  # on the board, not on the table beside it
+
+
+def test_the_readmes_env_example_runs_and_gives_what_it_says(tmp_path) -> None:
+    # the first code a reader runs: the obs it documents in its comment, and front|side frames
+    (block,) = python_blocks(ROOT / "README.md", "## Using the env")
+    said = re.search(r"# obs = (\{.*\})", block).group(1)
+    assert said == ('{"pixels": {"front": uint8[480,640,3], "side": uint8[480,640,3]}, '
+                    '"agent_pos": float32[6]}')
+    script = block + "\n".join([
+        "", "def shape(a):", "    return f'{a.dtype}[{\",\".join(map(str, a.shape))}]'",
+        "half = frame.shape[1] // 2  # front, then side: two different pictures",
+        "print({k: shape(v) for k, v in obs['pixels'].items()}, shape(obs['agent_pos']),",
+        "      shape(frame), bool(abs(frame[:, :half].astype(int) - frame[:, half:]).mean() > 1))"])
+    run = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True,
+                         text=True, timeout=300, check=False)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stdout.splitlines()[-1] == ("{'front': 'uint8[480,640,3]', 'side': "
+                                          "'uint8[480,640,3]'} float32[6] uint8[480,1280,3] True")
