@@ -9,6 +9,7 @@ import re
 import shlex
 import subprocess
 import sys
+import tempfile
 import warnings
 from pathlib import Path
 
@@ -132,13 +133,15 @@ def parse_as_lerobot_does(command: str, args: list[str], monkeypatch) -> object:
     return cfg
 
 
-def test_documented_lerobot_commands_parse(monkeypatch, capsys) -> None:
+def test_documented_lerobot_commands_parse(monkeypatch, capsys, tmp_path) -> None:
     # lerobot's CLIs fail on an unknown or misspelt flag, or a bad value of the sim's robot and
     # env configs, before anything runs; tests/test_lerobot_robot.py runs them with test sizes
     from lerobot.utils.import_utils import register_third_party_plugins
 
     register_third_party_plugins()  # what each lerobot entry point does first
     monkeypatch.chdir(ROOT)  # the docs' relative paths (policy/pick_place_diffusion)
+    # lerobot's PreTrainedConfig.from_pretrained (--policy.path) leaves a tmp*.json behind
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     shown = []
     for doc in sorted({ROOT / "README.md", *ROOT.glob("docs/*.md"),
                        *ROOT.glob("benchmarks/**/*.md"), *ROOT.glob("plugins/*/README.md")}):
