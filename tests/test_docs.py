@@ -1,5 +1,5 @@
-"""The commands the docs tell users to run are ones the CLI accepts as written, and the
-names they give in the package exist."""
+"""What the docs tell users to run works as written: `so101-sim` and lerobot's commands parse,
+the names they give in the package exist, and the code examples run and do what they say."""
 
 from __future__ import annotations
 
