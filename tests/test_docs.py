@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import logging
 import re
 import shlex
 import subprocess
@@ -133,12 +134,30 @@ def parse_as_lerobot_does(command: str, args: list[str], monkeypatch) -> object:
     return cfg
 
 
+def import_from(modules: list[str], where: Path, monkeypatch) -> None:
+    """Import `modules` with `where` as the cwd. lerobot's async modules, once imported, log to
+    logs/<name>_<time>.log under the cwd in place of the root logger's handlers: the file is
+    closed and the handlers put back."""
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    with monkeypatch.context() as m:
+        m.chdir(where)
+        for module in modules:
+            importlib.import_module(module)
+    for handler in root.handlers:
+        if handler not in handlers:
+            handler.close()
+    root.handlers[:] = handlers
+    root.setLevel(level)
+
+
 def test_documented_lerobot_commands_parse(monkeypatch, capsys, tmp_path) -> None:
     # lerobot's CLIs fail on an unknown or misspelt flag, or a bad value of the sim's robot and
     # env configs, before anything runs; tests/test_lerobot_robot.py runs them with test sizes
     from lerobot.utils.import_utils import register_third_party_plugins
 
     register_third_party_plugins()  # what each lerobot entry point does first
+    import_from([module for module, _ in LEROBOT_COMMANDS.values()], tmp_path, monkeypatch)
     monkeypatch.chdir(ROOT)  # the docs' relative paths (policy/pick_place_diffusion)
     # lerobot's PreTrainedConfig.from_pretrained (--policy.path) leaves a tmp*.json behind
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
