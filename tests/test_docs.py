@@ -184,6 +184,14 @@ def python_blocks(path: Path, heading: str) -> list[str]:
     return re.findall(r"```python\n(.*?)```", section, flags=re.S)
 
 
+def run_python(script: str, cwd: Path) -> str:
+    """The last line `script` prints, run by this Python in a process of its own from `cwd`."""
+    run = subprocess.run([sys.executable, "-c", script], cwd=cwd, capture_output=True,
+                         text=True, timeout=300, check=False)
+    assert run.returncode == 0, run.stderr[-3000:]
+    return run.stdout.splitlines()[-1]
+
+
 def test_the_task_kind_example_in_the_docs_runs(tmp_path) -> None:
     # a reader copies the kind into a module of theirs and runs the two lines that follow it;
     # in a process of its own, as it registers "shelf" over tests/shelf_kind.py's
@@ -200,10 +208,7 @@ def test_the_task_kind_example_in_the_docs_runs(tmp_path) -> None:
         "    obs, reward, terminated, truncated, info = env.step(expert.select_action(obs))",
         "    done = terminated or truncated",
         "print(env.task.kind, info['is_success'], info['failure_mode'], env.cube_pos(0)[2])"])
-    run = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True,
-                         text=True, timeout=300, check=False)
-    assert run.returncode == 0, run.stderr[-3000:]
-    kind_name, success, failure, height = run.stdout.split()[-4:]
+    kind_name, success, failure, height = run_python(script, tmp_path).split()
     assert (kind_name, success, failure) == ("shelf", "True", "None")
     assert float(height) > 0.02  # on the board, not on the table beside it
 
@@ -219,8 +224,5 @@ def test_the_readmes_env_example_runs_and_gives_what_it_says(tmp_path) -> None:
         "half = frame.shape[1] // 2  # front, then side: two different pictures",
         "print({k: shape(v) for k, v in obs['pixels'].items()}, shape(obs['agent_pos']),",
         "      shape(frame), bool(abs(frame[:, :half].astype(int) - frame[:, half:]).mean() > 1))"])
-    run = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True,
-                         text=True, timeout=300, check=False)
-    assert run.returncode == 0, run.stderr[-3000:]
-    assert run.stdout.splitlines()[-1] == ("{'front': 'uint8[480,640,3]', 'side': "
-                                          "'uint8[480,640,3]'} float32[6] uint8[480,1280,3] True")
+    assert run_python(script, tmp_path) == ("{'front': 'uint8[480,640,3]', 'side': "
+                                           "'uint8[480,640,3]'} float32[6] uint8[480,1280,3] True")
