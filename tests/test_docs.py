@@ -78,10 +78,16 @@ def resolves(name: str) -> bool:
     return False
 
 
+def doc_files(suffix: str = "") -> list[Path]:
+    """The files of DOC_FILES whose names end with `suffix`."""
+    return sorted({p for pattern in DOC_FILES if pattern.endswith(suffix)
+                   for p in ROOT.glob(pattern)})
+
+
 def test_the_package_names_the_docs_give_exist() -> None:
     # the docs, model cards and preset comments; a module moved in a restructure left its old
     # name in a card and two presets before
-    docs = sorted({p for pattern in DOC_FILES for p in ROOT.glob(pattern)})
+    docs = doc_files()
     assert ROOT / "README.md" in docs and ROOT / "policy/presets/cpu.toml" in docs
     where: dict[str, list[str]] = {}  # each name is resolved once, wherever it is given
     for path in docs:
@@ -162,8 +168,7 @@ def test_documented_lerobot_commands_parse(monkeypatch, capsys, tmp_path) -> Non
     # lerobot's PreTrainedConfig.from_pretrained (--policy.path) leaves a tmp*.json behind
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     shown = []
-    for doc in sorted({ROOT / "README.md", *ROOT.glob("docs/*.md"),
-                       *ROOT.glob("benchmarks/**/*.md"), *ROOT.glob("plugins/*/README.md")}):
+    for doc in doc_files(".md"):  # the READMEs, docs/ and the model cards
         for line in shown_lines(doc):
             if m := LEROBOT_COMMAND.match(line):
                 shown.append((doc.relative_to(ROOT), m.group(1), m.group(2)))
