@@ -1,8 +1,10 @@
-"""What the docs tell users to run works as written: `so101-sim` and lerobot's commands parse,
-the names they give in the package exist, and the code examples run and do what they say."""
+"""What the docs tell users to run works as written: `so101-sim`, lerobot's and the benchmark
+scripts' commands parse, the names they give in the package exist, and the code examples run and
+do what they say."""
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import inspect
 import logging
@@ -180,6 +182,63 @@ def test_documented_lerobot_commands_parse(monkeypatch, capsys, tmp_path) -> Non
         except (SystemExit, Exception) as e:  # argparse exits; a config's checks raise
             said = capsys.readouterr().err.strip().splitlines()
             refused.append(f"{doc}: {command} {args}\n  -> {said[-1] if said else repr(e)}")
+    assert refused == [], "\n".join(refused)
+
+
+# a benchmark script the docs run: `benchmarks/x.py ARGS`, `python benchmarks/x.py ARGS`, ...
+BENCH_COMMAND = re.compile(r"(?:\S*python\S*\s+)?(?:\S*/)?(benchmarks/[\w/]+\.py)\b\s*(.*)")
+
+
+class Parsed(Exception):
+    """Raised in place of the work a benchmark script would do once its arguments parse."""
+
+
+def synopsis_args(args: str) -> list[str]:
+    """A usage line's arguments as a command line: `[--steps 20]` gives `--steps 20` (the
+    optional flags it shows must exist too), `...` (more of the same) is left out."""
+    return [token.strip("[]") for token in shlex.split(args) if token.strip("[]") != "..."]
+
+
+def shown_benchmark_lines(path: Path) -> list[str]:
+    """The shell lines of `path`, and its inline `code` that runs a script with arguments (the
+    prose cites the command behind a number that way)."""
+    inline = [span for span in re.findall(r"`([^`\n]+)`", path.read_text())
+              if (m := BENCH_COMMAND.match(span)) and m.group(2).strip()]
+    return shown_lines(path) + inline
+
+
+def test_documented_benchmark_commands_parse(monkeypatch, capsys) -> None:
+    # the benchmark lines are how each number in the docs is reproduced: a flag renamed or
+    # dropped in a script leaves its command in the docs failing as written
+    from script_loader import load_script
+
+    shown = [(doc.relative_to(ROOT), m.group(1), m.group(2))
+             for doc in doc_files(".md") for line in shown_benchmark_lines(doc)
+             if (m := BENCH_COMMAND.match(line))]
+    scripts = {script for _, script, _ in shown}
+    assert {"benchmarks/bench_eval.py", "benchmarks/bench_against.py"} <= scripts, scripts
+    parse_args = argparse.ArgumentParser.parse_args
+
+    def parse_then_stop(self, args=None, namespace=None):
+        parse_args(self, args, namespace)  # exits, naming the flag, if the line is refused
+        raise Parsed
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_then_stop)
+    modules = {}
+    for script in sorted(scripts):  # registered while the test runs: their dataclasses need it
+        monkeypatch.setitem(sys.modules, Path(script).stem, None)
+        modules[script] = load_script(ROOT / script, register=True)
+    refused = []
+    for doc, script, args in shown:
+        monkeypatch.setattr(sys, "argv", [script, *synopsis_args(args)])
+        try:
+            modules[script].main()
+            said = "it ran without parsing its arguments"
+        except Parsed:
+            continue
+        except SystemExit:
+            said = (capsys.readouterr().err.strip().splitlines() or ["(nothing)"])[-1]
+        refused.append(f"{doc}: {script} {args}\n  -> {said}")
     assert refused == [], "\n".join(refused)
 
 
