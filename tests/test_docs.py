@@ -4,9 +4,10 @@ do what they say."""
 
 from __future__ import annotations
 
-import argparse
+import ast
 import importlib
 import inspect
+import json
 import logging
 import re
 import shlex
@@ -189,10 +190,6 @@ def test_documented_lerobot_commands_parse(monkeypatch, capsys, tmp_path) -> Non
 BENCH_COMMAND = re.compile(r"(?:\S*python\S*\s+)?(?:\S*/)?(benchmarks/[\w/]+\.py)\b\s*(.*)")
 
 
-class Parsed(Exception):
-    """Raised in place of the work a benchmark script would do once its arguments parse."""
-
-
 def synopsis_args(args: str) -> list[str]:
     """A usage line's arguments as a command line: `[--steps 20]` gives `--steps 20` (the
     optional flags it shows must exist too), `...` (more of the same) is left out."""
@@ -200,45 +197,34 @@ def synopsis_args(args: str) -> list[str]:
 
 
 def shown_benchmark_lines(path: Path) -> list[str]:
-    """The shell lines of `path`, and its inline `code` that runs a script with arguments (the
-    prose cites the command behind a number that way)."""
+    """The shell lines of a doc, and its inline `code` that runs a script with arguments (the
+    prose cites the command behind a number that way); of a script, the usage lines of its
+    docstring."""
+    if path.suffix == ".py":
+        usage = (ast.get_docstring(ast.parse(path.read_text())) or "").replace("\\\n", " ")
+        return [line.strip().split(" #")[0] for line in usage.splitlines()
+                if line.startswith("    ")]
     inline = [span for span in re.findall(r"`([^`\n]+)`", path.read_text())
               if (m := BENCH_COMMAND.match(span)) and m.group(2).strip()]
     return shown_lines(path) + inline
 
 
-def test_documented_benchmark_commands_parse(monkeypatch, capsys) -> None:
+def test_documented_benchmark_commands_parse(tmp_path) -> None:
     # the benchmark lines are how each number in the docs is reproduced: a flag renamed or
     # dropped in a script leaves its command in the docs failing as written
-    from script_loader import load_script
-
+    docs = doc_files(".md") + sorted((ROOT / "benchmarks").rglob("*.py"))
     shown = [(doc.relative_to(ROOT), m.group(1), m.group(2))
-             for doc in doc_files(".md") for line in shown_benchmark_lines(doc)
+             for doc in docs for line in shown_benchmark_lines(doc)
              if (m := BENCH_COMMAND.match(line))]
     scripts = {script for _, script, _ in shown}
     assert {"benchmarks/bench_eval.py", "benchmarks/bench_against.py"} <= scripts, scripts
-    parse_args = argparse.ArgumentParser.parse_args
-
-    def parse_then_stop(self, args=None, namespace=None):
-        parse_args(self, args, namespace)  # exits, naming the flag, if the line is refused
-        raise Parsed
-
-    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_then_stop)
-    modules = {}
-    for script in sorted(scripts):  # registered while the test runs: their dataclasses need it
-        monkeypatch.setitem(sys.modules, Path(script).stem, None)
-        modules[script] = load_script(ROOT / script, register=True)
-    refused = []
-    for doc, script, args in shown:
-        monkeypatch.setattr(sys, "argv", [script, *synopsis_args(args)])
-        try:
-            modules[script].main()
-            said = "it ran without parsing its arguments"
-        except Parsed:
-            continue
-        except SystemExit:
-            said = (capsys.readouterr().err.strip().splitlines() or ["(nothing)"])[-1]
-        refused.append(f"{doc}: {script} {args}\n  -> {said}")
+    lines = json.dumps([(script, synopsis_args(args)) for _, script, args in shown])
+    run = subprocess.run([sys.executable, str(ROOT / "tests/benchmark_parse.py")], input=lines,
+                         cwd=tmp_path, capture_output=True, text=True, timeout=600, check=False)
+    assert run.returncode == 0, run.stderr[-3000:]
+    said = json.loads(run.stdout)
+    refused = [f"{doc}: {script} {args}\n  -> {why}"
+               for (doc, script, args), why in zip(shown, said, strict=True) if why]
     assert refused == [], "\n".join(refused)
 
 
