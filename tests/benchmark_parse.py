@@ -16,15 +16,12 @@ import argparse
 import contextlib
 import io
 import json
-import re
 import sys
 from pathlib import Path
 
 from script_loader import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
-# a usage line's metavar where a typed value goes (`--idle-steps-per-s R`): the flag exists
-PLACEHOLDER = re.compile(r"error: argument \S+: invalid \w+ value: '[A-Z][A-Z_]*'$")
 
 
 class Parsed(BaseException):
@@ -67,8 +64,7 @@ def refusal(script: str, args: list[str], modules: dict) -> str | None:
     except Parsed:
         return None
     except SystemExit:
-        said = (err.getvalue().strip().splitlines() or ["(nothing)"])[-1]
-        return None if PLACEHOLDER.search(said) else said
+        return (err.getvalue().strip().splitlines() or ["(nothing)"])[-1]
     return "it returned without parsing its arguments"
 
 

@@ -237,7 +237,8 @@ def test_documented_benchmark_commands_parse(tmp_path) -> None:
     assert run.returncode == 0, run.stderr[-3000:]
     said = json.loads(run.stdout)
     refused = [f"{doc}: {script} {args}\n  -> {why}"
-               for (doc, script, args), why in zip(shown, said, strict=True) if why]
+               for (doc, script, args), why in zip(shown, said, strict=True)
+               if why and not refuses_only_a_placeholder(why, synopsis_args(args))]
     assert refused == [], "\n".join(refused)
 
 
