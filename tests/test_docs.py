@@ -24,8 +24,13 @@ COMMAND = re.compile(r"(?:\S*/)?so101-sim\s+(.*)")  # so101-sim ..., .venv/bin/s
 
 def shown_lines(path: Path) -> list[str]:
     """The shell lines of `path`, comments cut: in ```bash blocks, or indented 4 spaces."""
+    return shell_lines(path.read_text())
+
+
+def shell_lines(text: str) -> list[str]:
+    """The shell lines of a doc's or a docstring's `text` (see `shown_lines`)."""
     found, fenced, lang = [], False, ""
-    text = path.read_text().replace("\\\n", " ")  # a continued command is one line
+    text = text.replace("\\\n", " ")  # a continued command is one line
     for line in text.splitlines():
         if line.startswith("```"):
             fenced, lang = not fenced, line[3:].strip()
@@ -71,8 +76,8 @@ def test_documented_commands_parse(capsys) -> None:
 
 
 DOTTED = re.compile(r"(?<![\w.])so101_sim(?:\.[A-Za-z_]\w*)+")
-DOC_FILES = ("*.md", "docs/*.md", "benchmarks/**/*.md", "envs/*.toml", "policy/**/*.md",
-             "policy/**/*.json", "policy/presets/*.toml")
+DOC_FILES = ("*.md", "docs/*.md", "benchmarks/**/*.md", "plugins/**/*.md", "envs/*.toml",
+             "policy/**/*.md", "policy/**/*.json", "policy/presets/*.toml")
 
 
 def resolves(name: str) -> bool:
@@ -214,9 +219,7 @@ def shown_benchmark_lines(path: Path) -> list[str]:
     prose cites the command behind a number that way); of a script, the usage lines of its
     docstring."""
     if path.suffix == ".py":
-        usage = (ast.get_docstring(ast.parse(path.read_text())) or "").replace("\\\n", " ")
-        return [line.strip().split(" #")[0] for line in usage.splitlines()
-                if line.startswith("    ")]
+        return shell_lines(ast.get_docstring(ast.parse(path.read_text())) or "")
     inline = [span for span in re.findall(r"`([^`\n]+)`", path.read_text())
               if (m := BENCH_COMMAND.match(span)) and m.group(2).strip()]
     return shown_lines(path) + inline
@@ -226,19 +229,19 @@ def test_documented_benchmark_commands_parse(tmp_path) -> None:
     # the benchmark lines are how each number in the docs is reproduced: a flag renamed or
     # dropped in a script leaves its command in the docs failing as written
     docs = doc_files(".md") + sorted((ROOT / "benchmarks").rglob("*.py"))
-    shown = [(doc.relative_to(ROOT), m.group(1), m.group(2))
+    shown = [(doc.relative_to(ROOT), m.group(1), m.group(2), synopsis_args(m.group(2)))
              for doc in docs for line in shown_benchmark_lines(doc)
              if (m := BENCH_COMMAND.match(line))]
-    scripts = {script for _, script, _ in shown}
+    scripts = {script for _, script, _, _ in shown}
     assert {"benchmarks/bench_eval.py", "benchmarks/bench_against.py"} <= scripts, scripts
-    lines = json.dumps([(script, synopsis_args(args)) for _, script, args in shown])
+    lines = json.dumps([(script, argv) for _, script, _, argv in shown])
     run = subprocess.run([sys.executable, str(ROOT / "tests/benchmark_parse.py")], input=lines,
                          cwd=tmp_path, capture_output=True, text=True, timeout=600, check=False)
     assert run.returncode == 0, run.stderr[-3000:]
     said = json.loads(run.stdout)
     refused = [f"{doc}: {script} {args}\n  -> {why}"
-               for (doc, script, args), why in zip(shown, said, strict=True)
-               if why and not refuses_only_a_placeholder(why, synopsis_args(args))]
+               for (doc, script, args, argv), why in zip(shown, said, strict=True)
+               if why and not refuses_only_a_placeholder(why, argv)]
     assert refused == [], "\n".join(refused)
 
 
