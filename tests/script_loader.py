@@ -1,4 +1,4 @@
-"""Load a benchmark script (benchmarks/*.py, not part of the package) as a module in a test."""
+"""Load a script (benchmarks/*.py, plugins/*/*.py; not in the package) as a module in a test."""
 
 from __future__ import annotations
 

@@ -23,7 +23,10 @@ COMMAND = re.compile(r"(?:\S*/)?so101-sim\s+(.*)")  # so101-sim ..., .venv/bin/s
 
 
 def shown_lines(path: Path) -> list[str]:
-    """The shell lines of `path`, comments cut: in ```bash blocks, or indented 4 spaces."""
+    """The shell lines of `path`, comments cut: in ```bash blocks, or indented 4 spaces; of a
+    script, those of its docstring (its usage)."""
+    if path.suffix == ".py":
+        return shell_lines(ast.get_docstring(ast.parse(path.read_text())) or "")
     return shell_lines(path.read_text())
 
 
@@ -59,7 +62,7 @@ def test_documented_commands_parse(capsys) -> None:
     from so101_sim.cli.parser import build_parser
 
     shown = [(doc.relative_to(ROOT), command)
-             for doc in doc_files(".md") for command in shown_commands(doc)]
+             for doc in doc_files(".md") + script_files() for command in shown_commands(doc)]
     per_doc = Counter(str(doc) for doc, _ in shown)  # the docs show a command-line workflow
     assert min(per_doc["README.md"], per_doc["benchmarks/README.md"]) >= 10, per_doc
     parser = build_parser()
@@ -204,8 +207,14 @@ def test_documented_lerobot_commands_parse(monkeypatch, capsys, tmp_path) -> Non
     assert refused == [], "\n".join(refused)
 
 
-# a benchmark script the docs run: `benchmarks/x.py ARGS`, `python benchmarks/x.py ARGS`, ...
-BENCH_COMMAND = re.compile(r"(?:\S*python\S*\s+)?(?:\S*/)?(benchmarks/[\w/]+\.py)\b\s*(.*)")
+# a script the docs run: `benchmarks/x.py ARGS`, `python plugins/p/x.py ARGS`, ...
+SCRIPT_COMMAND = re.compile(
+    r"(?:\S*python\S*\s+)?(?:\S*/)?((?:benchmarks|plugins)/[\w/]+\.py)\b\s*(.*)")
+
+
+def script_files() -> list[Path]:
+    """The benchmark and plugin scripts, whose docstrings give their usage."""
+    return sorted({*ROOT.glob("benchmarks/**/*.py"), *ROOT.glob("plugins/**/*.py")})
 
 
 def synopsis_args(args: str) -> list[str]:
@@ -214,28 +223,29 @@ def synopsis_args(args: str) -> list[str]:
     return [token.strip("[]") for token in shlex.split(args) if token.strip("[]") != "..."]
 
 
-def shown_benchmark_lines(path: Path) -> list[str]:
-    """The shell lines of a doc, and its inline `code` that runs a script with arguments (the
-    prose cites the command behind a number that way); of a script, the usage lines of its
-    docstring."""
+def shown_script_lines(path: Path) -> list[str]:
+    """The shell lines of a doc or a script's docstring, and a doc's inline `code` that runs a
+    script with arguments (the prose cites the command behind a number that way)."""
     if path.suffix == ".py":
-        return shell_lines(ast.get_docstring(ast.parse(path.read_text())) or "")
+        return shown_lines(path)
     inline = [span for span in re.findall(r"`([^`\n]+)`", path.read_text())
-              if (m := BENCH_COMMAND.match(span)) and m.group(2).strip()]
+              if (m := SCRIPT_COMMAND.match(span)) and m.group(2).strip()]
     return shown_lines(path) + inline
 
 
-def test_documented_benchmark_commands_parse(tmp_path) -> None:
-    # the benchmark lines are how each number in the docs is reproduced: a flag renamed or
-    # dropped in a script leaves its command in the docs failing as written
-    docs = doc_files(".md") + sorted((ROOT / "benchmarks").rglob("*.py"))
+def test_documented_script_commands_parse(tmp_path) -> None:
+    # the benchmark lines are how each number in the docs is reproduced, and the plugin's
+    # agreement.py is how lerobot's tools are paired with ours: a flag renamed or dropped in a
+    # script leaves its command in the docs failing as written
+    docs = doc_files(".md") + script_files()
     shown = [(doc.relative_to(ROOT), m.group(1), m.group(2), synopsis_args(m.group(2)))
-             for doc in docs for line in shown_benchmark_lines(doc)
-             if (m := BENCH_COMMAND.match(line))]
+             for doc in docs for line in shown_script_lines(doc)
+             if (m := SCRIPT_COMMAND.match(line))]
     scripts = {script for _, script, _, _ in shown}
-    assert {"benchmarks/bench_eval.py", "benchmarks/bench_against.py"} <= scripts, scripts
+    assert {"benchmarks/bench_eval.py", "benchmarks/bench_against.py",
+            "plugins/lerobot_robot_so101_sim/agreement.py"} <= scripts, scripts
     lines = json.dumps([(script, argv) for _, script, _, argv in shown])
-    run = subprocess.run([sys.executable, str(ROOT / "tests/benchmark_parse.py")], input=lines,
+    run = subprocess.run([sys.executable, str(ROOT / "tests/script_parse.py")], input=lines,
                          cwd=tmp_path, capture_output=True, text=True, timeout=600, check=False)
     assert run.returncode == 0, run.stderr[-3000:]
     said = json.loads(run.stdout)

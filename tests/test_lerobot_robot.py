@@ -27,6 +27,7 @@ from lerobot_robot_so101_sim import (
     SO101SimExpertConfig,
     connected_robot,
 )
+from script_loader import load_script
 from tiny_act import make_tiny_act_checkpoint
 from tiny_policy import short_task
 
@@ -589,11 +590,7 @@ def test_the_expert_finds_its_robot_by_id(tmp_path):
 
 
 def test_agreement_pairs_seeds_with_an_eval_folder(tmp_path, capsys):
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("agreement", AGREEMENT)
-    agreement = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(agreement)
+    agreement = load_script(AGREEMENT)
     (tmp_path / "episodes.jsonl").write_text("".join(
         json.dumps({"seed": s, "episode_ix": i, "status": "ok", "success": ok}) + "\n"
         for i, (s, ok) in enumerate([(10, True), (11, True), (12, False), (13, False)])))
@@ -602,6 +599,24 @@ def test_agreement_pairs_seeds_with_an_eval_folder(tmp_path, capsys):
     assert (paired["seeds"], paired["both"], paired["only_lerobot"],
             paired["only_so101_sim_eval"], paired["neither"]) == (4, 1, 1, 1, 1)
     assert paired["mcnemar_p"] == 1.0 and "McNemar p = 1.000" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(("flag", "value", "expected"), [
+    ("--episodes", "0", "expected an integer >= 1"),
+    ("--seed-start", "-1", "expected an integer >= 0"),
+    ("--render-size", "480", "expected HEIGHTxWIDTH, e.g. 480x640"),
+    ("--actions-per-chunk", "0", "expected an integer >= 1"),
+])
+def test_agreement_refuses_a_bad_value_before_it_runs(flag, value, expected, tmp_path, capsys):
+    # before, --episodes 0 started lerobot-rollout for no episode and --render-size 480 failed
+    # only after the policy folder had been read (a missing one here, so that a value let
+    # through fails at once instead of running lerobot-rollout)
+    with pytest.raises(SystemExit) as stop:
+        load_script(AGREEMENT).main(["rollout", flag, value, "--out", str(tmp_path / "out"),
+                                     "--policy", str(tmp_path / "no_policy")])
+    said = capsys.readouterr().err
+    assert stop.value.code == 2 and flag in said and expected in said, (stop.value.code, said)
+    assert not (tmp_path / "out").exists()
 
 
 # ------------------------------------------------------------------ lerobot's console scripts

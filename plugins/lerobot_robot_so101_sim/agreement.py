@@ -33,6 +33,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from so101_sim.cli.arg_types import nonnegative_int, parse_image_size, positive_int
+
 REPO = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
 LEROBOT_ISSUE = "https://github.com/huggingface/lerobot/issues/3861"
@@ -64,10 +66,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--policy", default=str(REPO / "policy" / "pick_place_diffusion"),
                    help="checkpoint folder (default: the shipped policy)")
     p.add_argument("--task", default="pick_place", help="suite task name or task TOML path")
-    p.add_argument("--episodes", type=int, default=30, help="seeds to run (N)")
-    p.add_argument("--seed-start", type=int, default=100_000, help="first seed (S)")
+    p.add_argument("--episodes", type=positive_int, default=30, help="seeds to run (N)")
+    p.add_argument("--seed-start", type=nonnegative_int, default=100_000, help="first seed (S)")
     p.add_argument("--out", default=None, help="folder for outcomes, logs, the rollout dataset")
-    p.add_argument("--render-size", default=None, metavar="HxW",
+    p.add_argument("--render-size", type=parse_image_size, default=None, metavar="HxW",
                    help="render size (default: the checkpoint's recorded size, "
                         "so101_sim_train.json dataset_image_size; else its input size)")
     p.add_argument("--episode-time-s", type=float, default=None,
@@ -77,8 +79,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="rollout: pace the sim at the task's fps (default: as fast as it runs)")
     p.add_argument("--pair", default=None, metavar="EVAL_DIR",
                    help="so101-sim eval folder of the same seeds: print the paired table")
-    p.add_argument("--port", type=int, default=0, help="async: server port (0: a free one)")
-    p.add_argument("--actions-per-chunk", type=int, default=None,
+    p.add_argument("--port", type=nonnegative_int, default=0,
+                   help="async: server port (0: a free one)")
+    p.add_argument("--actions-per-chunk", type=positive_int, default=None,
                    help="async: actions per chunk (default: the policy's n_action_steps)")
     p.add_argument("--chunk-size-threshold", type=float, default=0.5)
     p.add_argument("--aggregate-fn", default="weighted_average")
@@ -115,24 +118,13 @@ def _policy_info(path: Path) -> dict[str, Any]:
             "n_action_steps": int(cfg.get("n_action_steps", cfg.get("chunk_size", 1)))}
 
 
-def _render_size(args: argparse.Namespace, policy: dict[str, Any]) -> tuple[int, int]:
-    if args.render_size:
-        try:
-            h, w = (int(v) for v in args.render_size.lower().split("x"))
-        except ValueError:
-            raise SystemExit(f"--render-size {args.render_size!r} is invalid; expected "
-                             "HEIGHTxWIDTH, e.g. 480x640") from None
-        return h, w
-    return policy["recorded_size"]
-
-
 def _robot_flags(args: argparse.Namespace, policy: dict[str, Any],
                  outcomes_path: Path) -> dict[str, Any]:
     """SO101SimConfig fields that show the policy its frames as it was trained on them."""
     if policy["image_size"] is None:
         raise SystemExit(f"--policy {policy['path']}: no camera input; this script measures "
                          "image policies")
-    (h, w), (rh, rw) = policy["image_size"], _render_size(args, policy)
+    (h, w), (rh, rw) = policy["image_size"], args.render_size or policy["recorded_size"]
     return {"task": args.task, "seed": args.seed_start, "camera_names": policy["cameras"],
             "image_height": h, "image_width": w, "render_height": rh, "render_width": rw,
             "outcomes_path": outcomes_path}

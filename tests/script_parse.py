@@ -1,11 +1,11 @@
-"""Parse benchmark command lines with each script's own argparse parser, and run nothing.
+"""Parse scripts' command lines with each script's own argparse parser, and run nothing.
 
-    python tests/benchmark_parse.py < lines.json    # [[script, [arg, ...]], ...]
+    python tests/script_parse.py < lines.json    # [[script, [arg, ...]], ...]
 
 Prints a JSON list with one entry per line: null where the script's parser took the line, or
 the last line of what it said when it refused it. Each script's ``main()`` runs until its
 outermost ``parse_known_args`` (which ``parse_args`` calls) has finished, and stops there, so
-no benchmark work starts. Runs in a process of its own because the scripts change process
+none of its work starts. Runs in a process of its own because the scripts change process
 state as they start (``so101-sim train`` through ``benchmarks/gpu/train_without_pyav.py`` says
 the process is a command's own), which a test worker must not inherit.
 """
