@@ -606,6 +606,13 @@ def test_agreement_pairs_seeds_with_an_eval_folder(tmp_path, capsys):
     ("--seed-start", "-1", "expected an integer >= 0"),
     ("--render-size", "480", "expected HEIGHTxWIDTH, e.g. 480x640"),
     ("--actions-per-chunk", "0", "expected an integer >= 1"),
+    # -1 ended in lerobot-rollout's traceback (an episode with no frame), 0 ran the default
+    ("--episode-time-s", "-1", "-1 is invalid; expected a finite number > 0"),
+    ("--episode-time-s", "0", "0 is invalid; expected a finite number > 0"),
+    # 5 ended in lerobot's ValueError once the policy server was up; nan ran a client that
+    # never asked for a chunk, until it was killed
+    ("--chunk-size-threshold", "5", "5 is invalid; expected a fraction in [0, 1]"),
+    ("--chunk-size-threshold", "nan", "nan is invalid; expected a fraction in [0, 1]"),
 ])
 def test_agreement_refuses_a_bad_value_before_it_runs(flag, value, expected, tmp_path, capsys):
     # before, --episodes 0 started lerobot-rollout for no episode and --render-size 480 failed
@@ -616,6 +623,17 @@ def test_agreement_refuses_a_bad_value_before_it_runs(flag, value, expected, tmp
                                      "--policy", str(tmp_path / "no_policy")])
     said = capsys.readouterr().err
     assert stop.value.code == 2 and flag in said and expected in said, (stop.value.code, said)
+    assert not (tmp_path / "out").exists()
+
+
+def test_agreement_refuses_an_unknown_aggregate_function_before_the_server_starts(tmp_path):
+    # before, lerobot's RobotClientConfig raised ValueError once the policy server was up
+    with pytest.raises(SystemExit) as stop:
+        load_script(AGREEMENT).main(["async", "--patch-diffusion", "--aggregate-fn", "mean",
+                                     "--episodes", "1", "--out", str(tmp_path / "out")])
+    said = str(stop.value.code)
+    assert "--aggregate-fn 'mean' is not one of lerobot's" in said, said
+    assert "weighted_average" in said and "latest_only" in said, said
     assert not (tmp_path / "out").exists()
 
 

@@ -33,7 +33,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from so101_sim.cli.arg_types import nonnegative_int, parse_image_size, positive_int
+from so101_sim.cli.arg_types import (
+    nonnegative_int,
+    parse_image_size,
+    positive_float,
+    positive_int,
+    unit_fraction,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
@@ -72,7 +78,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--render-size", type=parse_image_size, default=None, metavar="HxW",
                    help="render size (default: the checkpoint's recorded size, "
                         "so101_sim_train.json dataset_image_size; else its input size)")
-    p.add_argument("--episode-time-s", type=float, default=None,
+    p.add_argument("--episode-time-s", type=positive_float, default=None,
                    help="rollout: wall seconds per lerobot episode (default: 4x the task's "
                         "episode length at its fps)")
     p.add_argument("--realtime", action="store_true",
@@ -83,8 +89,13 @@ def _parser() -> argparse.ArgumentParser:
                    help="async: server port (0: a free one)")
     p.add_argument("--actions-per-chunk", type=positive_int, default=None,
                    help="async: actions per chunk (default: the policy's n_action_steps)")
-    p.add_argument("--chunk-size-threshold", type=float, default=0.5)
-    p.add_argument("--aggregate-fn", default="weighted_average")
+    p.add_argument("--chunk-size-threshold", type=unit_fraction, default=0.5,
+                   help="async: the client sends an observation for a new chunk once its "
+                        "queue holds at most this fraction of a chunk (lerobot's "
+                        "chunk_size_threshold)")
+    p.add_argument("--aggregate-fn", default="weighted_average",
+                   help="async: how overlapping chunks are merged (lerobot's "
+                        "aggregate_fn_name)")
     p.add_argument("--patch-diffusion", action="store_true",
                    help="async: let lerobot 0.6.1's policy server run a Diffusion Policy with "
                         f"n_obs_steps > 1 (it fails otherwise, {LEROBOT_ISSUE}): a single "
@@ -200,6 +211,12 @@ def _run_async(args: argparse.Namespace, policy: dict[str, Any], out: Path,
 
 
 def _check_async(args: argparse.Namespace, policy: dict[str, Any]) -> None:
+    from lerobot.async_inference.configs import AGGREGATE_FUNCTIONS
+
+    if args.aggregate_fn not in AGGREGATE_FUNCTIONS:  # lerobot's client raised after the
+        # policy server had started
+        raise SystemExit(f"--aggregate-fn {args.aggregate_fn!r} is not one of lerobot's: "
+                         f"expected one of {', '.join(AGGREGATE_FUNCTIONS)}")
     if policy["type"] == "diffusion" and policy["n_obs_steps"] > 1 and not args.patch_diffusion:
         raise SystemExit(f"--policy {policy['path']} is a Diffusion Policy with n_obs_steps="
                          f"{policy['n_obs_steps']}: lerobot 0.6.1's policy server fails on it "

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 
 __all__ = ["eval_seed_int", "nonnegative_int", "parse_camera_map_arg", "parse_cameras",
-           "parse_ensemble_coeff", "parse_image_size", "parse_steps", "positive_int"]
+           "parse_ensemble_coeff", "parse_image_size", "parse_steps", "positive_float",
+           "positive_int", "unit_fraction"]
 
 
 def parse_image_size(text: str) -> tuple[int, int]:
@@ -39,6 +41,27 @@ def positive_int(text: str) -> int:
 def nonnegative_int(text: str) -> int:
     """argparse type for a reset seed (>= 0, as Gymnasium requires) or a count that may be 0."""
     return _int_from(0, text)
+
+
+def _float_where(text: str, ok: Callable[[float], bool], expected: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number; expected {expected}"
+                                         ) from None
+    if not ok(value):  # nan fails every comparison, so it lands here too
+        raise argparse.ArgumentTypeError(f"{text} is invalid; expected {expected}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type for a duration in seconds: finite and > 0."""
+    return _float_where(text, lambda v: 0 < v < float("inf"), "a finite number > 0")
+
+
+def unit_fraction(text: str) -> float:
+    """argparse type for a fraction in [0, 1] (e.g. how full a queue is)."""
+    return _float_where(text, lambda v: 0 <= v <= 1, "a fraction in [0, 1]")
 
 
 def eval_seed_int(text: str) -> int:
