@@ -637,6 +637,18 @@ def test_agreement_refuses_an_unknown_aggregate_function_before_the_server_start
     assert not (tmp_path / "out").exists()
 
 
+def test_agreement_refuses_a_pair_folder_without_an_eval_before_it_runs(tmp_path):
+    # before, --pair was read after the whole lerobot run, which then ended without its summary
+    (tmp_path / "not_an_eval").mkdir()
+    with pytest.raises(SystemExit) as stop:
+        load_script(AGREEMENT).main(["rollout", "--pair", str(tmp_path / "not_an_eval"),
+                                     "--out", str(tmp_path / "out"),
+                                     "--policy", str(tmp_path / "no_policy")])
+    said = str(stop.value.code)
+    assert said.startswith(f"--pair {tmp_path / 'not_an_eval'}: no episodes.jsonl there"), said
+    assert not (tmp_path / "out").exists()
+
+
 # ------------------------------------------------------------------ lerobot's console scripts
 @pytest.mark.slow
 def test_lerobot_record_with_the_expert_then_train_and_replay(tmp_path):

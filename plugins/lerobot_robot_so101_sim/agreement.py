@@ -50,6 +50,8 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if args.mode == "_serve":
         return _serve(args)
+    if args.pair:  # read only at the end: a wrong folder found then cost the whole run
+        _pair_file(Path(args.pair))
     policy = _policy_info(Path(args.policy))
     if args.mode == "async":
         _check_async(args, policy)
@@ -377,15 +379,19 @@ def _report(args: argparse.Namespace, out: Path, outcomes_path: Path,
     return 1 if unfinished or missing else 0
 
 
-def _paired(eval_dir: Path, ours: dict[str, bool]) -> dict[str, Any]:
-    from so101_sim.harness.stats import mcnemar_p_value, paired_difference_interval
-
+def _pair_file(eval_dir: Path) -> Path:
     path = eval_dir / "episodes.jsonl"
     if not path.is_file():
         raise SystemExit(f"--pair {eval_dir}: no episodes.jsonl there; expected the --out "
                          "folder of `so101-sim eval`")
+    return path
+
+
+def _paired(eval_dir: Path, ours: dict[str, bool]) -> dict[str, Any]:
+    from so101_sim.harness.stats import mcnemar_p_value, paired_difference_interval
+
     theirs = {}
-    for line in path.read_text().splitlines():
+    for line in _pair_file(eval_dir).read_text().splitlines():
         if line.strip():
             rec = json.loads(line)
             if rec.get("status", "ok") == "ok":
