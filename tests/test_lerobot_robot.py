@@ -649,6 +649,19 @@ def test_agreement_refuses_a_pair_folder_without_an_eval_before_it_runs(tmp_path
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("under", ["", "run"], ids=["is-a-file", "under-a-file"])
+def test_agreement_refuses_an_out_that_is_a_file(under, tmp_path):
+    # before, mkdir ended in a FileExistsError or NotADirectoryError traceback
+    (tmp_path / "notes.txt").write_text("mine")
+    out = tmp_path / "notes.txt" / under if under else tmp_path / "notes.txt"
+    with pytest.raises(SystemExit) as stop:
+        load_script(AGREEMENT).main(["rollout", "--out", str(out)])  # the shipped policy
+    said = str(stop.value.code)
+    assert said.startswith(f"--out {out}: {tmp_path / 'notes.txt'} is a file; expected a "
+                           "folder"), said
+    assert (tmp_path / "notes.txt").read_text() == "mine"
+
+
 # ------------------------------------------------------------------ lerobot's console scripts
 @pytest.mark.slow
 def test_lerobot_record_with_the_expert_then_train_and_replay(tmp_path):

@@ -52,10 +52,14 @@ def main(argv: list[str] | None = None) -> int:
         return _serve(args)
     if args.pair:  # read only at the end: a wrong folder found then cost the whole run
         _pair_file(Path(args.pair))
+    out = Path(args.out or f"outputs/agreement/{args.mode}")
+    blocking = next((p for p in (out, *out.parents) if p.exists() and not p.is_dir()), None)
+    if blocking is not None:  # mkdir raised FileExistsError or NotADirectoryError
+        raise SystemExit(f"--out {out}: {blocking} is a file; expected a folder for the "
+                         "outcomes, logs and agreement.json: choose another --out")
     policy = _policy_info(Path(args.policy))
     if args.mode == "async":
         _check_async(args, policy)
-    out = Path(args.out or f"outputs/agreement/{args.mode}")
     out.mkdir(parents=True, exist_ok=True)
     outcomes_path = out / "outcomes.jsonl"
     outcomes_path.unlink(missing_ok=True)
