@@ -662,6 +662,16 @@ def test_agreement_refuses_an_out_that_is_a_file(under, tmp_path):
     assert (tmp_path / "notes.txt").read_text() == "mine"
 
 
+def test_agreement_refuses_an_unknown_task_before_it_runs(tmp_path):
+    # before, load_task's error came as a traceback, after --out had been made
+    with pytest.raises(SystemExit) as stop:
+        load_script(AGREEMENT).main(["rollout", "--task", "pick_plac",
+                                     "--out", str(tmp_path / "out")])  # the shipped policy
+    said = str(stop.value.code)
+    assert said.startswith("--task 'pick_plac' is invalid: unknown task 'pick_plac'"), said
+    assert "pick_place" in said and not (tmp_path / "out").exists()
+
+
 # ------------------------------------------------------------------ lerobot's console scripts
 @pytest.mark.slow
 def test_lerobot_record_with_the_expert_then_train_and_replay(tmp_path):

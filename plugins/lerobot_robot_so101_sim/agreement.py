@@ -58,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"--out {out}: {blocking} is a file; expected a folder for the "
                          "outcomes, logs and agreement.json: choose another --out")
     policy = _policy_info(Path(args.policy))
+    task = _task(args.task)
     if args.mode == "async":
         _check_async(args, policy)
     out.mkdir(parents=True, exist_ok=True)
@@ -65,9 +66,9 @@ def main(argv: list[str] | None = None) -> int:
     outcomes_path.unlink(missing_ok=True)
     latency: list[float] = []
     if args.mode == "rollout":
-        _run_rollout(args, policy, out, outcomes_path)
+        _run_rollout(args, policy, task, out, outcomes_path)
     else:
-        latency = _run_async(args, policy, out, outcomes_path)
+        latency = _run_async(args, policy, task, out, outcomes_path)
     return _report(args, out, outcomes_path, latency)
 
 
@@ -147,12 +148,19 @@ def _robot_flags(args: argparse.Namespace, policy: dict[str, Any],
             "outcomes_path": outcomes_path}
 
 
-# --------------------------------------------------------------------------- rollout
-def _run_rollout(args: argparse.Namespace, policy: dict[str, Any], out: Path,
-                 outcomes_path: Path) -> None:
+def _task(name: str) -> Any:
+    """The suite task or task TOML, refused in one line (a traceback once --out was made)."""
     from so101_sim.tasks import load_task
 
-    task = load_task(args.task)
+    try:
+        return load_task(name)
+    except ValueError as exc:
+        raise SystemExit(f"--task {name!r} is invalid: {exc}") from None
+
+
+# --------------------------------------------------------------------------- rollout
+def _run_rollout(args: argparse.Namespace, policy: dict[str, Any], task: Any, out: Path,
+                 outcomes_path: Path) -> None:
     episode_s = args.episode_time_s or 4 * task.max_steps / task.fps
     robot = _robot_flags(args, policy, outcomes_path)
     robot["realtime"] = args.realtime
@@ -193,12 +201,9 @@ def _run_logged(cmd: list[str], log: Path) -> None:
 
 
 # --------------------------------------------------------------------------- async
-def _run_async(args: argparse.Namespace, policy: dict[str, Any], out: Path,
+def _run_async(args: argparse.Namespace, policy: dict[str, Any], task: Any, out: Path,
                outcomes_path: Path) -> list[float]:
     """Policy server in a subprocess, RobotClient here; returns chunk latencies (s)."""
-    from so101_sim.tasks import load_task
-
-    task = load_task(args.task)
     port = args.port or _free_port()
     serve = [sys.executable, str(Path(__file__).resolve()), "_serve", f"--port={port}",
              f"--fps={task.fps}"] + (["--patch-diffusion"] if args.patch_diffusion else [])
