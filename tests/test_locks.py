@@ -179,3 +179,16 @@ def test_lock_in_one_process_names_its_holder(tmp_path: Path) -> None:
     with pytest.raises(RuntimeError, match="boom"), FolderLock(tmp_path / "new", "it"):
         raise RuntimeError("boom")
     assert not (tmp_path / "new").exists()  # created by a run that failed at once: removed
+
+
+@pytest.mark.parametrize("argv", [["eval", "--policy", "expert", "--episodes", "1"],
+                                  ["record", "--episodes", "1"]], ids=["eval", "record"])
+def test_an_out_under_a_file_is_refused_in_one_line(argv, tmp_path: Path, capsys) -> None:
+    # before, mkdir's NotADirectoryError came out as a traceback
+    (tmp_path / "notes.txt").write_text("mine")
+    out = tmp_path / "notes.txt" / "run"
+    code = main([*argv, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert f"{out} lies under {tmp_path / 'notes.txt'}, a file; expected a folder for" in err
+    assert (tmp_path / "notes.txt").read_text() == "mine"

@@ -40,6 +40,7 @@ from so101_sim.cli.arg_types import (
     positive_int,
     unit_fraction,
 )
+from so101_sim.utils.locks import file_in_the_way
 
 REPO = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
@@ -53,8 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.pair:  # read only at the end: a wrong folder found then cost the whole run
         _pair_file(Path(args.pair))
     out = Path(args.out or f"outputs/agreement/{args.mode}")
-    blocking = next((p for p in (out, *out.parents) if p.exists() and not p.is_dir()), None)
-    if blocking is not None:  # mkdir raised FileExistsError or NotADirectoryError
+    if (blocking := file_in_the_way(out)) is not None:  # mkdir raised FileExistsError or
+        # NotADirectoryError
         raise SystemExit(f"--out {out}: {blocking} is a file; expected a folder for the "
                          "outcomes, logs and agreement.json: choose another --out")
     policy = _policy_info(Path(args.policy))

@@ -63,6 +63,12 @@ def _holder(fd: int, what: str) -> tuple[str, str]:
     return "another process (it did not say which)", what
 
 
+def file_in_the_way(folder: str | Path) -> Path | None:
+    """The file at `folder` or at one of its parents, which would stop its mkdir."""
+    folder = Path(folder)
+    return next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)
+
+
 def has_content(folder: str | Path, ignore: Iterable[str] = ()) -> bool:
     """Whether `folder` holds anything besides lock files and the names in `ignore`."""
     folder = Path(folder)
@@ -102,8 +108,9 @@ class FolderLock:
 
     def acquire(self) -> FolderLock:
         folder = self.folder
-        if folder.exists() and not folder.is_dir():
-            raise ValueError(f"{folder} is a file; expected a folder for {self.what}: choose "
+        if (blocking := file_in_the_way(folder)) is not None:  # under one: NotADirectoryError
+            what = "is a file" if blocking == folder else f"lies under {blocking}, a file"
+            raise ValueError(f"{folder} {what}; expected a folder for {self.what}: choose "
                              "another path")
         self.created = not folder.exists()
         folder.mkdir(parents=True, exist_ok=True)
