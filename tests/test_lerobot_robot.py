@@ -8,6 +8,7 @@ import importlib.metadata
 import json
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -662,6 +663,21 @@ def test_agreement_refuses_an_out_that_is_a_file(under, tmp_path):
     assert (tmp_path / "notes.txt").read_text() == "mine"
 
 
+@pytest.mark.parametrize("missing", ["config.json", "model.safetensors"])
+def test_agreement_refuses_a_policy_folder_without_its_files_before_it_runs(missing, tmp_path):
+    # before, a folder without weights ran: lerobot-rollout or the policy server then failed
+    policy = tmp_path / "policy"
+    shutil.copytree(SHIPPED, policy)
+    (policy / missing).unlink()
+    with pytest.raises(SystemExit) as stop:
+        load_script(AGREEMENT).main(["rollout", "--policy", str(policy),
+                                     "--out", str(tmp_path / "out")])
+    said = str(stop.value.code)
+    assert said.startswith(f"--policy {policy}: no {missing} there; expected a checkpoint "
+                           "folder"), said
+    assert not (tmp_path / "out").exists()
+
+
 def test_agreement_refuses_an_unknown_task_before_it_runs(tmp_path):
     # before, load_task's error came as a traceback, after --out had been made
     with pytest.raises(SystemExit) as stop:
@@ -829,6 +845,47 @@ def test_async_inference_drives_the_sim(tmp_path):
     assert (first["seed"], first["ended_by"]) == (0, "env") and 0 < first["steps"] <= 20
 
 
+def test_the_patched_server_runs_a_diffusion_policy_on_one_observation(monkeypatch):
+    """lerobot 0.6.1's policy server hands predict_action_chunk one observation and no history:
+    the shipped Diffusion Policy (n_obs_steps=2) fails on that unpatched and returns a chunk
+    once lerobot_robot_so101_sim.patched_server has patched it."""
+    import torch
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+    from lerobot_robot_so101_sim.patched_server import patch_diffusion_single_observation
+
+    # the patch is class-wide: monkeypatch puts lerobot's own method back after the test
+    monkeypatch.setattr(DiffusionPolicy, "predict_action_chunk",
+                        DiffusionPolicy.predict_action_chunk)
+    policy = DiffusionPolicy.from_pretrained(SHIPPED).eval()
+    assert policy.config.n_obs_steps == 2
+    batch = {key: torch.rand(1, *feature.shape)
+             for key, feature in policy.config.input_features.items()}
+    with torch.no_grad(), pytest.raises(AssertionError):
+        policy.predict_action_chunk(batch)
+    patch_diffusion_single_observation()
+    patched = DiffusionPolicy.predict_action_chunk
+    patch_diffusion_single_observation()  # a second call leaves the first patch alone
+    assert DiffusionPolicy.predict_action_chunk is patched
+    with torch.no_grad():
+        chunk = policy.predict_action_chunk(batch)
+    assert tuple(chunk.shape) == (1, policy.config.n_action_steps, len(FEATURE_NAMES))
+    assert torch.isfinite(chunk).all()
+
+
+@pytest.mark.slow
+def test_agreement_async_names_the_servers_error_on_damaged_weights(tmp_path):
+    # before: "could not reach the policy server", though it was up and had raised on them
+    policy, out = tmp_path / "policy", tmp_path / "out"
+    shutil.copytree(SHIPPED, policy)
+    (policy / "model.safetensors").write_bytes(b"not weights")
+    run = _run([sys.executable, AGREEMENT, "async", "--patch-diffusion", "--episodes", "1",
+                "--policy", policy, "--out", out], tmp_path, timeout=120)
+    assert run.returncode == 1, run.stdout + run.stderr[-3000:]
+    said = run.stderr[run.stderr.index("the policy server on port"):]
+    assert f"did not take --policy {policy}; the end of {out / 'server.log'}:" in said
+    assert "SafetensorError" in said  # the server's own error, from its log
+
+
 @pytest.mark.slow
 def test_agreement_async_runs_the_shipped_diffusion_policy(tmp_path):
     run = _run([sys.executable, AGREEMENT, "async", "--episodes", "1"], tmp_path)
@@ -837,8 +894,13 @@ def test_agreement_async_runs_the_shipped_diffusion_policy(tmp_path):
     out = tmp_path / "async"
     run = _run([sys.executable, AGREEMENT, "async", "--patch-diffusion", "--episodes", "1",
                 "--task", short_task(tmp_path, max_steps=20), "--render-size", "120x160",
-                "--out", out], tmp_path)
+                "--out", out, "--policy", os.path.relpath(SHIPPED, tmp_path)], tmp_path)
+    # the policy's path as typed, relative to where it was run; the server runs in --out
     assert run.returncode == 0, run.stdout + run.stderr[-3000:]
     assert "seed 100000: " in run.stdout and "action latency" in run.stdout
     summary = json.loads((out / "agreement.json").read_text())
     assert summary["episodes"] == 1 and summary["latency_ms"]["chunks"] >= 1
+    # lerobot's client and server make logs/ in their cwd: here --out, not where it was run
+    assert not (tmp_path / "logs").exists()
+    assert {p.name.rsplit("_", 1)[0] for p in (out / "logs").glob("*.log")} == {
+        "robot_client", "policy_server"}

@@ -15,14 +15,15 @@ unfinished: raise the time. ``async`` runs lerobot's policy server (a subprocess
 port) and its ``RobotClient`` (in this process, unchanged, timing each action chunk from the
 observation's capture to its arrival); the sim starts the next seed as soon as an episode ends
 and the client has no notion of episodes, so the first chunk of an episode may still come from
-the previous one's frames. Per-seed lines, the rate with its Wilson interval and a JSON summary
-(``<out>/agreement.json``) come out; ``--pair DIR`` adds the paired table against an
-``so101-sim eval`` folder (its ``episodes.jsonl``).
+the previous one's frames (lerobot's own log files go to ``<out>/logs``). Per-seed lines, the
+rate with its Wilson interval and a JSON summary (``<out>/agreement.json``) come out; ``--pair
+DIR`` adds the paired table against an ``so101-sim eval`` folder (its ``episodes.jsonl``).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import socket
@@ -49,8 +50,6 @@ LEROBOT_ISSUE = "https://github.com/huggingface/lerobot/issues/3861"
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    if args.mode == "_serve":
-        return _serve(args)
     if args.pair:  # read only at the end: a wrong folder found then cost the whole run
         _pair_file(Path(args.pair))
     out = Path(args.out or f"outputs/agreement/{args.mode}")
@@ -75,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("mode", choices=["rollout", "async", "_serve"],
+    p.add_argument("mode", choices=["rollout", "async"],
                    help="rollout: lerobot-rollout episodic; async: policy server + robot client")
     p.add_argument("--policy", default=str(REPO / "policy" / "pick_place_diffusion"),
                    help="checkpoint folder (default: the shipped policy)")
@@ -105,22 +104,22 @@ def _parser() -> argparse.ArgumentParser:
                    help="async: how overlapping chunks are merged (lerobot's "
                         "aggregate_fn_name)")
     p.add_argument("--patch-diffusion", action="store_true",
-                   help="async: let lerobot 0.6.1's policy server run a Diffusion Policy with "
-                        f"n_obs_steps > 1 (it fails otherwise, {LEROBOT_ISSUE}): a single "
-                        "observation is repeated over the history, as select_action does at an "
-                        "episode's first step")
-    p.add_argument("--host", default="127.0.0.1", help=argparse.SUPPRESS)
-    p.add_argument("--fps", type=int, default=30, help=argparse.SUPPRESS)
+                   help="async: serve with lerobot_robot_so101_sim.patched_server, lerobot "
+                        "0.6.1's policy server made to run a Diffusion Policy with n_obs_steps "
+                        f"> 1 (it fails otherwise, {LEROBOT_ISSUE}): a single observation is "
+                        "repeated over the history, as select_action does at an episode's "
+                        "first step")
     return p
 
 
 # --------------------------------------------------------------------------- the policy
 def _policy_info(path: Path) -> dict[str, Any]:
     """Type, cameras, input size, recorded size and chunk length of a checkpoint folder."""
+    for name in ("config.json", "model.safetensors"):  # lerobot failed on it after starting
+        if not (path / name).is_file():
+            raise SystemExit(f"--policy {path}: no {name} there; expected a checkpoint folder "
+                             "(pretrained_model), e.g. policy/pick_place_diffusion")
     cfg_path = path / "config.json"
-    if not cfg_path.is_file():
-        raise SystemExit(f"--policy {path}: no config.json there; expected a checkpoint folder "
-                         "(pretrained_model), e.g. policy/pick_place_diffusion")
     cfg = json.loads(cfg_path.read_text())
     cams, size = [], None
     for key, feat in cfg.get("input_features", {}).items():
@@ -196,9 +195,12 @@ def _run_logged(cmd: list[str], log: Path) -> None:
         run = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                              env=env, check=False)
     if run.returncode != 0:
-        tail = log.read_text(encoding="utf-8", errors="replace")[-3000:]
         raise SystemExit(f"{Path(cmd[0]).name} exited with {run.returncode}; the end of "
-                         f"{log}:\n{tail}")
+                         f"{log}:\n{_log_tail(log)}")
+
+
+def _log_tail(log: Path) -> str:
+    return log.read_text(encoding="utf-8", errors="replace")[-3000:]
 
 
 # --------------------------------------------------------------------------- async
@@ -206,14 +208,16 @@ def _run_async(args: argparse.Namespace, policy: dict[str, Any], task: Any, out:
                outcomes_path: Path) -> list[float]:
     """Policy server in a subprocess, RobotClient here; returns chunk latencies (s)."""
     port = args.port or _free_port()
-    serve = [sys.executable, str(Path(__file__).resolve()), "_serve", f"--port={port}",
-             f"--fps={task.fps}"] + (["--patch-diffusion"] if args.patch_diffusion else [])
-    with open(out / "server.log", "w", encoding="utf-8") as log:
+    server_module = ("lerobot_robot_so101_sim.patched_server" if args.patch_diffusion else
+                     "lerobot.async_inference.policy_server")
+    serve = [sys.executable, "-m", server_module, "--host=127.0.0.1", f"--port={port}",
+             f"--fps={task.fps}"]
+    with open(out / "server.log", "w", encoding="utf-8") as log:  # cwd: its logs/ in --out
         server = subprocess.Popen(serve, stdout=log, stderr=subprocess.STDOUT,
-                                  stdin=subprocess.DEVNULL)
+                                  stdin=subprocess.DEVNULL, cwd=out)
     try:
         _wait_for_port(port, server)
-        return _client(args, policy, task, port, outcomes_path)
+        return _client(args, policy, task, port, out, outcomes_path)
     finally:
         server.terminate()
         try:
@@ -257,10 +261,12 @@ def _wait_for_port(port: int, server: subprocess.Popen, timeout: float = 120.0) 
 
 
 def _client(args: argparse.Namespace, policy: dict[str, Any], task: Any, port: int,
-            outcomes_path: Path) -> list[float]:
+            out: Path, outcomes_path: Path) -> list[float]:
     from lerobot.async_inference.configs import RobotClientConfig
-    from lerobot.async_inference.robot_client import RobotClient
     from lerobot_robot_so101_sim import SO101SimConfig
+
+    with contextlib.chdir(out):  # importing it makes logs/ and a log file in the cwd
+        from lerobot.async_inference.robot_client import RobotClient
 
     latencies: list[float] = []
 
@@ -276,15 +282,19 @@ def _client(args: argparse.Namespace, policy: dict[str, Any], task: Any, port: i
 
     robot = SO101SimConfig(**_robot_flags(args, policy, outcomes_path), episode_end="reset")
     cfg = RobotClientConfig(
-        policy_type=policy["type"], pretrained_name_or_path=str(policy["path"]), robot=robot,
+        policy_type=policy["type"], robot=robot,  # the server's cwd is --out
+        pretrained_name_or_path=str(Path(policy["path"]).resolve()),
         actions_per_chunk=args.actions_per_chunk or policy["n_action_steps"],
         task=task.description, server_address=f"127.0.0.1:{port}", policy_device="cpu",
         chunk_size_threshold=args.chunk_size_threshold, fps=task.fps,
         aggregate_fn_name=args.aggregate_fn)
     client = TimedClient(cfg)
-    if not client.start():
+    if not client.start():  # the server raised on the policy (its traceback is in its log),
+        # or stopped listening
         client.stop()
-        raise SystemExit(f"could not reach the policy server on port {port}")
+        log = out / "server.log"
+        raise SystemExit(f"the policy server on port {port} did not take --policy "
+                         f"{policy['path']}; the end of {log}:\n{_log_tail(log)}")
     threads = [threading.Thread(target=client.receive_actions, daemon=True),
                threading.Thread(target=client.control_loop, args=(task.description,),
                                 daemon=True)]
@@ -304,39 +314,6 @@ def _client(args: argparse.Namespace, policy: dict[str, Any], task: Any, port: i
         client.stop()
         threads[0].join(timeout=30)
     return latencies
-
-
-def _serve(args: argparse.Namespace) -> int:
-    """lerobot's policy server, in this process (optionally with the Diffusion patch)."""
-    if args.patch_diffusion:
-        _patch_diffusion_single_observation()
-    from lerobot.async_inference import policy_server
-
-    sys.argv = [sys.argv[0], f"--host={args.host}", f"--port={args.port}", f"--fps={args.fps}"]
-    policy_server.serve()
-    return 0
-
-
-def _patch_diffusion_single_observation() -> None:
-    """lerobot 0.6.1's server calls ``predict_action_chunk`` with one observation and empty
-    history queues; a Diffusion Policy with n_obs_steps > 1 then fails an assertion. Repeat
-    that observation over the history first (what ``select_action`` does at an episode's
-    start; the fix proposed upstream, huggingface/lerobot PR 3886)."""
-    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
-    from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
-
-    original = DiffusionPolicy.predict_action_chunk
-
-    def predict_action_chunk(self: Any, batch: dict, noise: Any = None) -> Any:
-        if not any(len(q) for q in self._queues.values()):
-            n, batch = self.config.n_obs_steps, dict(batch)
-            for key in (OBS_STATE, OBS_ENV_STATE, *self.config.image_features):
-                value = batch.get(key)
-                if value is not None and value.ndim in (2, 4):  # no history axis yet
-                    batch[key] = value.unsqueeze(1).repeat_interleave(n, dim=1)
-        return original(self, batch, noise=noise)
-
-    DiffusionPolicy.predict_action_chunk = predict_action_chunk
 
 
 # --------------------------------------------------------------------------- report
