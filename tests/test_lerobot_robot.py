@@ -678,6 +678,22 @@ def test_agreement_refuses_a_policy_folder_without_its_files_before_it_runs(miss
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("render_size, want", [
+    (None, (480, 640, 0)),  # eval --faithful: the recorded size, with its own mesh detail
+    ("120x160", (120, 160, 640)),  # eval --image-size 120x160 keeps the recorded 640 px meshes
+    ("60x80", (60, 80, 0)),  # eval --image-size 60x80: the input size, direct, 80 px meshes
+])
+def test_agreement_renders_as_eval_does_at_the_same_size(render_size, want, tmp_path):
+    # before, --render-size 120x160 rendered 160 px meshes where eval keeps the recorded 640 px
+    # ones, and the pairing line still said --faithful
+    agreement = load_script(AGREEMENT)
+    args = agreement._parser().parse_args(
+        ["rollout"] + (["--render-size", render_size] if render_size else []))
+    flags = agreement._robot_flags(args, agreement._policy_info(SHIPPED), tmp_path / "o.jsonl")
+    assert (flags["render_height"], flags["render_width"], flags["mesh_width"]) == want
+    assert (flags["image_height"], flags["image_width"]) == (60, 80)
+
+
 def test_agreement_refuses_an_unknown_task_before_it_runs(tmp_path):
     # before, load_task's error came as a traceback, after --out had been made
     with pytest.raises(SystemExit) as stop:
@@ -785,6 +801,7 @@ def test_lerobot_rollout_runs_the_shipped_policy(tmp_path):
                 "120x160", "--episode-time-s", "6", "--out", out], tmp_path)
     assert run.returncode == 0, run.stdout + run.stderr[-3000:]
     assert "seed 100001: " in run.stdout and "success: " in run.stdout
+    assert "--seed-start 100000 --image-size 120x160\n" in run.stdout  # how eval renders it
     summary = json.loads((out / "agreement.json").read_text())
     assert summary["episodes"] == 2 and summary["unfinished"] == []
     rows = _outcomes(out / "outcomes.jsonl")

@@ -9,15 +9,16 @@
 ``rollout`` runs ``lerobot-rollout --strategy.type=episodic`` (sync inference) on seeds
 S..S+N-1: one dataset episode per seed, the policy reset at each, frames rendered at the
 checkpoint's recorded size and resized with so101-sim's training resize, as ``so101-sim eval
---faithful`` does. A lerobot episode lasts ``--episode-time-s`` of wall time whatever happens
-in it (the scene holds after the sim's end), so an episode still running then is reported as
-unfinished: raise the time. ``async`` runs lerobot's policy server (a subprocess on a loopback
-port) and its ``RobotClient`` (in this process, unchanged, timing each action chunk from the
-observation's capture to its arrival); the sim starts the next seed as soon as an episode ends
-and the client has no notion of episodes, so the first chunk of an episode may still come from
-the previous one's frames (lerobot's own log files go to ``<out>/logs``). Per-seed lines, the
-rate with its Wilson interval and a JSON summary (``<out>/agreement.json``) come out; ``--pair
-DIR`` adds the paired table against an ``so101-sim eval`` folder (its ``episodes.jsonl``).
+--faithful`` does (``--render-size HxW``: as its ``--image-size HxW``). A lerobot episode lasts
+``--episode-time-s`` of wall time whatever happens in it (the scene holds after the sim's end),
+so an episode still running then is reported as unfinished: raise the time. ``async`` runs
+lerobot's policy server (a subprocess on a loopback port) and its ``RobotClient`` (in this
+process, unchanged, timing each action chunk from the observation's capture to its arrival);
+the sim starts the next seed as soon as an episode ends and the client has no notion of
+episodes, so the first chunk of an episode may still come from the previous one's frames
+(lerobot's own log files go to ``<out>/logs``). Per-seed lines, the rate with its Wilson
+interval and a JSON summary (``<out>/agreement.json``) come out; ``--pair DIR`` adds the paired
+table against an ``so101-sim eval`` folder (its ``episodes.jsonl``).
 """
 
 from __future__ import annotations
@@ -83,8 +84,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seed-start", type=nonnegative_int, default=100_000, help="first seed (S)")
     p.add_argument("--out", default=None, help="folder for outcomes, logs, the rollout dataset")
     p.add_argument("--render-size", type=parse_image_size, default=None, metavar="HxW",
-                   help="render size (default: the checkpoint's recorded size, "
-                        "so101_sim_train.json dataset_image_size; else its input size)")
+                   help="render size, as `so101-sim eval --image-size` renders it (default: "
+                        "the checkpoint's recorded size, so101_sim_train.json "
+                        "dataset_image_size, else its input size: eval's --faithful)")
     p.add_argument("--episode-time-s", type=positive_float, default=None,
                    help="rollout: wall seconds per lerobot episode (default: 4x the task's "
                         "episode length at its fps)")
@@ -131,21 +133,32 @@ def _policy_info(path: Path) -> dict[str, Any]:
     if train_json.is_file():
         recorded = json.loads(train_json.read_text()).get("dataset_image_size")
     return {"path": path, "type": cfg["type"], "cameras": cams, "image_size": size,
-            "recorded_size": tuple(recorded) if recorded else size,
+            "recorded_size": tuple(recorded) if recorded else None,
             "n_obs_steps": int(cfg.get("n_obs_steps", 1)),
             "n_action_steps": int(cfg.get("n_action_steps", cfg.get("chunk_size", 1)))}
 
 
 def _robot_flags(args: argparse.Namespace, policy: dict[str, Any],
                  outcomes_path: Path) -> dict[str, Any]:
-    """SO101SimConfig fields that show the policy its frames as it was trained on them."""
+    """SO101SimConfig fields that render the policy's frames as ``so101-sim eval`` does: its
+    faithful path, or with --render-size, its --image-size of that size (the same mesh detail)."""
+    from so101_sim.harness.frames import choose_rendering
+    from so101_sim.harness.policies import PolicyInfo
+
     if policy["image_size"] is None:
         raise SystemExit(f"--policy {policy['path']}: no camera input; this script measures "
                          "image policies")
-    (h, w), (rh, rw) = policy["image_size"], args.render_size or policy["recorded_size"]
+    try:
+        info = PolicyInfo(name=str(policy["path"]), cameras=tuple(policy["cameras"]),
+                          image_size=policy["image_size"],
+                          train_image_size=policy["recorded_size"])
+    except ValueError as exc:  # a camera the sim lacks
+        raise SystemExit(f"--policy {policy['path']}: {exc}") from None
+    rendering = choose_rendering(info, args.render_size, faithful=args.render_size is None)
+    (h, w), (rh, rw) = policy["image_size"], rendering.render_size
     return {"task": args.task, "seed": args.seed_start, "camera_names": policy["cameras"],
             "image_height": h, "image_width": w, "render_height": rh, "render_width": rw,
-            "outcomes_path": outcomes_path}
+            "mesh_width": rendering.mesh_width or 0, "outcomes_path": outcomes_path}
 
 
 def _task(name: str) -> Any:
@@ -355,8 +368,10 @@ def _report(args: argparse.Namespace, out: Path, outcomes_path: Path,
               f"{lat['median']:.0f} ms, p90 {lat['p90']:.0f} ms, max {lat['max']:.0f} ms over "
               f"{lat['chunks']} chunks (the first, with the server's warm-up: "
               f"{lat['first_chunk']:.0f} ms)")
+    size = (f"--image-size {args.render_size[0]}x{args.render_size[1]}" if args.render_size
+            else "--faithful")  # the frames this run rendered (_robot_flags)
     print(f"pair with: so101-sim eval --policy {args.policy} --task {args.task} --episodes "
-          f"{args.episodes} --seed-start {args.seed_start} --faithful")
+          f"{args.episodes} --seed-start {args.seed_start} {size}")
     if args.pair:
         summary["paired"] = _paired(Path(args.pair), summary["per_seed"])
     (out / "agreement.json").write_text(json.dumps(summary, indent=2) + "\n")
