@@ -678,6 +678,29 @@ def test_agreement_refuses_a_policy_folder_without_its_files_before_it_runs(miss
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("rename, said", [
+    ("laptop", "wants cameras ['laptop']; the env has"),
+    (None, "no camera input; this script measures image policies"),
+])
+def test_agreement_refuses_a_policy_it_cannot_feed_before_it_runs(rename, said, tmp_path):
+    # before, these were found once --out was made (and, for async, the server started)
+    policy = tmp_path / "policy"
+    shutil.copytree(SHIPPED, policy)
+    config = json.loads((policy / "config.json").read_text())
+    features = config["input_features"]
+    for key in [k for k in features if k.startswith("observation.images.")]:
+        feature = features.pop(key)
+        if rename:
+            features[f"observation.images.{rename}"] = feature
+    (policy / "config.json").write_text(json.dumps(config))
+    with pytest.raises(SystemExit) as stop:
+        load_script(AGREEMENT).main(["rollout", "--policy", str(policy),
+                                     "--out", str(tmp_path / "out")])
+    assert str(stop.value.code).startswith(f"--policy {policy}: ") and said in \
+        str(stop.value.code), stop.value.code
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("render_size, want", [
     (None, (480, 640, 0)),  # eval --faithful: the recorded size, with its own mesh detail
     ("120x160", (120, 160, 640)),  # eval --image-size 120x160 keeps the recorded 640 px meshes

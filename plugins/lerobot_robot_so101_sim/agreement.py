@@ -60,16 +60,17 @@ def main(argv: list[str] | None = None) -> int:
                          "outcomes, logs and agreement.json: choose another --out")
     policy = _policy_info(Path(args.policy))
     task = _task(args.task)
+    outcomes_path = out / "outcomes.jsonl"
+    robot = _robot_flags(args, policy, outcomes_path)
     if args.mode == "async":
         _check_async(args, policy)
     out.mkdir(parents=True, exist_ok=True)
-    outcomes_path = out / "outcomes.jsonl"
     outcomes_path.unlink(missing_ok=True)
     latency: list[float] = []
     if args.mode == "rollout":
-        _run_rollout(args, policy, task, out, outcomes_path)
+        _run_rollout(args, policy, task, out, robot)
     else:
-        latency = _run_async(args, policy, task, out, outcomes_path)
+        latency = _run_async(args, policy, task, out, robot)
     return _report(args, out, outcomes_path, latency)
 
 
@@ -173,10 +174,9 @@ def _task(name: str) -> Any:
 
 # --------------------------------------------------------------------------- rollout
 def _run_rollout(args: argparse.Namespace, policy: dict[str, Any], task: Any, out: Path,
-                 outcomes_path: Path) -> None:
+                 robot: dict[str, Any]) -> None:
     episode_s = args.episode_time_s or 4 * task.max_steps / task.fps
-    robot = _robot_flags(args, policy, outcomes_path)
-    robot["realtime"] = args.realtime
+    robot = {**robot, "realtime": args.realtime}
     flags = [f"--robot.{k}={_flag_value(v)}" for k, v in robot.items()]
     dataset = out / "rollout_dataset"
     if dataset.exists():
@@ -218,7 +218,7 @@ def _log_tail(log: Path) -> str:
 
 # --------------------------------------------------------------------------- async
 def _run_async(args: argparse.Namespace, policy: dict[str, Any], task: Any, out: Path,
-               outcomes_path: Path) -> list[float]:
+               robot: dict[str, Any]) -> list[float]:
     """Policy server in a subprocess, RobotClient here; returns chunk latencies (s)."""
     port = args.port or _free_port()
     server_module = ("lerobot_robot_so101_sim.patched_server" if args.patch_diffusion else
@@ -230,7 +230,7 @@ def _run_async(args: argparse.Namespace, policy: dict[str, Any], task: Any, out:
                                   stdin=subprocess.DEVNULL, cwd=out)
     try:
         _wait_for_port(port, server)
-        return _client(args, policy, task, port, out, outcomes_path)
+        return _client(args, policy, task, port, out, robot)
     finally:
         server.terminate()
         try:
@@ -274,7 +274,7 @@ def _wait_for_port(port: int, server: subprocess.Popen, timeout: float = 120.0) 
 
 
 def _client(args: argparse.Namespace, policy: dict[str, Any], task: Any, port: int,
-            out: Path, outcomes_path: Path) -> list[float]:
+            out: Path, robot_flags: dict[str, Any]) -> list[float]:
     from lerobot.async_inference.configs import RobotClientConfig
     from lerobot_robot_so101_sim import SO101SimConfig
 
@@ -293,7 +293,7 @@ def _client(args: argparse.Namespace, policy: dict[str, Any], task: Any, port: i
                 latencies.append(time.time() - incoming_actions[0].get_timestamp())
             super()._aggregate_action_queues(incoming_actions, aggregate_fn)
 
-    robot = SO101SimConfig(**_robot_flags(args, policy, outcomes_path), episode_end="reset")
+    robot = SO101SimConfig(**robot_flags, episode_end="reset")
     cfg = RobotClientConfig(
         policy_type=policy["type"], robot=robot,  # the server's cwd is --out
         pretrained_name_or_path=str(Path(policy["path"]).resolve()),
