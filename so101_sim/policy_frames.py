@@ -247,27 +247,35 @@ def env_input_problem(argv: Sequence[str], cameras: Sequence[str],
     return None
 
 
-def async_server_problem(argv: Sequence[str]) -> InputProblem | None:
-    """The robot client asking lerobot's policy server for a type it cannot serve, or None."""
+def async_server_problem(argv: Sequence[str],
+                         patched_server: bool = False) -> InputProblem | None:
+    """The robot client asking lerobot's policy server for a type it cannot serve, or None.
+    `patched_server`: the client talks to ``lerobot_robot_so101_sim.patched_server``, which
+    serves diffusion (only)."""
     kind, path = flag_value(argv, "--policy_type"), flag_value(argv, "--pretrained_name_or_path")
-    if path is None or kind not in SERVER_FAILS_TYPES:
+    if path is None or kind not in SERVER_FAILS_TYPES or (patched_server and kind == "diffusion"):
         return None
     from so101_sim.utils.versions import installed
 
     return InputProblem(
-        f"--policy_type={kind}: lerobot {installed('lerobot')}'s policy server calls "
-        f"predict_action_chunk on one observation, without the observation history a {kind} "
-        "policy keeps, so every chunk fails on the server (lerobot issue #3861) and the arm "
-        "never moves; run it in one process instead: lerobot-rollout --strategy.type=base "
+        f"--policy_type={kind}: lerobot {installed('lerobot')}'s policy server"
+        + (" (patched for diffusion only)" if patched_server else "")
+        + f" calls predict_action_chunk on one observation, without the observation history a "
+        f"{kind} policy keeps, so every chunk fails on the server (lerobot issue #3861) and the "
+        "arm never moves; run it in one process instead: lerobot-rollout --strategy.type=base "
         f"--policy.path={path} --robot.type=so101_sim, or so101-sim eval --policy {path}"
-        + ("; plugins/lerobot_robot_so101_sim/agreement.py async --patch-diffusion serves it "
-           "through a patched server" if kind == "diffusion" else ""), True)
+        + ("; or serve it with python -m lerobot_robot_so101_sim.patched_server (lerobot's "
+           "server and flags, fixed for diffusion) and add --robot.patched_server=true"
+           if kind == "diffusion" else ""), True)
 
 
-def robot_input_problem(argv: Sequence[str], cameras: Sequence[str]) -> InputProblem | None:
+def robot_input_problem(argv: Sequence[str], cameras: Sequence[str],
+                        patched_server: bool = False) -> InputProblem | None:
     """What the sim robot (`--robot.camera_names` = `cameras`) fails to send the local policy on
-    `argv` (or lerobot's policy server fails to run for it), or None."""
-    if (problem := async_server_problem(argv) or folder_problem(argv)) is not None:
+    `argv` (or the robot client's policy server fails to run for it: `patched_server` as in
+    ``async_server_problem``), or None."""
+    if (problem := async_server_problem(argv, patched_server)
+            or folder_problem(argv)) is not None:
         return problem
     reads = PolicyReads.of(argv)
     if reads is None:

@@ -312,6 +312,14 @@ def test_the_robot_client_asking_for_a_policy_the_server_cannot_run_is_refused(t
     for argv in ([client, "--policy_type=act", f"--pretrained_name_or_path={SHIPPED}"],
                  ["lerobot-rollout", "--policy_type=diffusion", f"--policy.path={SHIPPED}"]):
         assert async_server_problem(argv) is None  # ACT serves; lerobot-rollout runs in-process
+    # the robot told that its client's server is the patched one: diffusion passes, the
+    # types the patch does not fix are still refused, and say so
+    diffusion = [client, "--policy_type=diffusion", f"--pretrained_name_or_path={SHIPPED}"]
+    assert "--robot.patched_server=true" in async_server_problem(diffusion).text
+    assert async_server_problem(diffusion, patched_server=True) is None
+    problem = async_server_problem([client, "--policy_type=tdmpc",
+                                    "--pretrained_name_or_path=user/repo"], patched_server=True)
+    assert problem is not None and problem.fatal and "(patched for diffusion only)" in problem.text
 
 
 def test_a_run_dataset_or_eval_folder_as_the_policy_is_one_line(tmp_path, monkeypatch):
@@ -849,13 +857,22 @@ def _listening(port: int) -> bool:
 
 
 @pytest.mark.slow
-def test_async_inference_drives_the_sim(tmp_path):
-    """lerobot's policy server and robot client, unchanged, on a loopback port (a tiny ACT:
-    lerobot 0.6.1's server cannot run a Diffusion Policy with n_obs_steps > 1, see below);
-    --robot.episodes=1 stops the client as Ctrl-C would after one episode."""
-    ckpt = make_tiny_act_checkpoint(tmp_path / "act", input_size=(H, W))
+@pytest.mark.parametrize("kind", ["act", "diffusion"])
+def test_async_inference_drives_the_sim(tmp_path, kind):
+    """lerobot's policy server and robot client, unchanged, on a loopback port, for a tiny
+    ACT; lerobot 0.6.1's server cannot run a Diffusion Policy with n_obs_steps > 1 (see
+    below), so the shipped one is served by lerobot_robot_so101_sim.patched_server, which the
+    robot is told with --robot.patched_server=true. --robot.episodes=1 stops the client as
+    Ctrl-C would after one episode."""
+    if kind == "act":
+        ckpt, (h, w) = make_tiny_act_checkpoint(tmp_path / "act", input_size=(H, W)), (H, W)
+        server_module, told = "lerobot.async_inference.policy_server", []
+    else:
+        ckpt, (h, w) = SHIPPED, (60, 80)
+        server_module = "lerobot_robot_so101_sim.patched_server"
+        told = ["--robot.patched_server=true"]
     port, outcomes = _free_port(), tmp_path / "async.jsonl"
-    server = subprocess.Popen([sys.executable, "-m", "lerobot.async_inference.policy_server",
+    server = subprocess.Popen([sys.executable, "-m", server_module,
                                "--host=127.0.0.1", f"--port={port}", "--fps=30"],
                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL, env=_env(tmp_path), cwd=tmp_path)
@@ -866,10 +883,10 @@ def test_async_inference_drives_the_sim(tmp_path):
             time.sleep(0.2)
         run = _run([sys.executable, "-m", "lerobot.async_inference.robot_client",
                     "--robot.type=so101_sim", f"--robot.task={short_task(tmp_path, 20)}",
-                    f"--robot.image_height={H}", f"--robot.image_width={W}",
+                    f"--robot.image_height={h}", f"--robot.image_width={w}", *told,
                     "--robot.episodes=1", f"--robot.outcomes_path={outcomes}",
                     f"--task={TASK_TEXT}", f"--server_address=127.0.0.1:{port}",
-                    "--policy_type=act", f"--pretrained_name_or_path={ckpt}",
+                    f"--policy_type={kind}", f"--pretrained_name_or_path={ckpt}",
                     "--policy_device=cpu", "--actions_per_chunk=8"], tmp_path, timeout=240)
     finally:
         server.send_signal(signal.SIGINT)

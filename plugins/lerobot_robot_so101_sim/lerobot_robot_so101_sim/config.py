@@ -84,6 +84,10 @@ class SO101SimConfig(RobotConfig):
     episodes: int = 0
     # Append each episode's outcome to this JSON-lines file (for scripts around the CLIs).
     outcomes_path: Path | None = None
+    # The robot client's policy server is `python -m lerobot_robot_so101_sim.patched_server`,
+    # which serves a Diffusion Policy; false: the client asking for one is refused at connect,
+    # since lerobot's own server fails its every chunk (lerobot issue #3861).
+    patched_server: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()

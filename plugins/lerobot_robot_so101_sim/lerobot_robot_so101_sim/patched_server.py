@@ -4,9 +4,10 @@ runs on it (lerobot 0.6.1's fails, huggingface/lerobot#3861).
     python -m lerobot_robot_so101_sim.patched_server --host=127.0.0.1 --port=8080 --fps=30
 
 The flags are lerobot's own (``PolicyServerConfig``). ``agreement.py async --patch-diffusion``
-starts it; lerobot's robot client still refuses ``--policy_type=diffusion`` at connect, since
-it cannot tell which server it talks to. Not imported by the plugin's ``__init__``: lerobot's
-CLIs import the plugin at start-up and must not get the patch.
+starts it. lerobot's robot client asking for ``--policy_type=diffusion`` is refused at connect
+unless it adds ``--robot.patched_server=true``: the robot cannot tell which server the client
+talks to. Not imported by the plugin's ``__init__``: lerobot's CLIs import the plugin at
+start-up and must not get the patch.
 """
 
 from __future__ import annotations

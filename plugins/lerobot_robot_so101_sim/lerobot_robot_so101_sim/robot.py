@@ -148,7 +148,8 @@ class SO101Sim(Robot):
         def warn(text: str) -> None:
             logger.warning("%s: %s", self, text)
 
-        refuse_or_warn(robot_input_problem(sys.argv, self.camera_names),
+        refuse_or_warn(robot_input_problem(sys.argv, self.camera_names,
+                                           self.config.patched_server),
                        f"--robot.type={ROBOT_TYPE}", warn)
 
     def calibrate(self) -> None:
