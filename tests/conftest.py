@@ -81,18 +81,20 @@ def lose_a_ctrl_c(monkeypatch):
     return lose
 
 
-# Seconds each module took in one `make test` (2026-11-30, 2 workers, 1659 s in all). Only the
-# order of the work depends on them: the longest modules start first, so the two workers end
-# together (longest-first scheduling). A module not listed runs after these.
+# Seconds each module took in one `make test` (2026-12-06, 2 workers, 2034 s in all, run with
+# --durations=0). Only the order of the work depends on them: the longest units start first,
+# so the two workers end together (longest-first scheduling). A module not listed (each of
+# those took under 10 s) runs after these.
 MODULE_SECONDS = {
-    "test_shipped_policy": 205, "test_full_disk": 153, "test_training": 152,
-    "test_lerobot_robot": 141, "test_durability": 128, "test_ray_backend": 110,
-    "test_recording": 109, "test_ray_cluster": 96, "test_harness": 67, "test_save_rollouts": 66,
-    "test_ray_unreachable": 56, "test_gpu_scripts": 45, "test_locks": 42, "test_against": 29,
-    "test_lerobot_zero_flags": 28, "test_policy_classes": 23, "test_exact_speedups": 33,
-    "test_grasp_trace": 19, "test_explain": 18, "test_testing": 17, "test_augment": 16,
-    "test_wrist": 14, "test_bad_input": 13, "test_baselines": 13, "test_encoder_split": 13,
-    "test_bench_scripts": 14,
+    "test_shipped_policy": 204, "test_recording": 175, "test_ray_backend": 165,
+    "test_lerobot_robot": 157, "test_ray_cluster": 116, "test_full_disk": 105,
+    "test_durability": 103, "test_training": 92, "test_gpu_scripts": 87, "test_save_rollouts": 75,
+    "test_against": 70, "test_lerobot_zero_flags": 61, "test_exact_speedups": 60,
+    "test_ray_unreachable": 51, "test_locks": 50, "test_startup": 44, "test_policy_classes": 35,
+    "test_explain": 32, "test_bad_input": 31, "test_bench_scripts": 28, "test_harness": 28,
+    "test_grasp_trace": 28, "test_testing": 25, "test_lerobot_train_env": 23, "test_wrist": 22,
+    "test_augment": 18, "test_baselines": 16, "test_packaging": 14, "test_sequential": 12,
+    "test_docs": 12, "test_probe_cube": 12,
 }
 
 
