@@ -19,10 +19,11 @@ median wall. Steps, all with the harness defaults (render path, 16 envs), seeds 
    median and 90th percentile of episodes used, so one lucky seed order does not decide;
 5. with `--windows K`: K more windows of 200 seeds after the reference's (100200..,
    100400.., ...), each with its own reference run of CHECKPOINT and full run of the weakened
-   one (kept in --out and reused) and one `--against` run of each policy: the median wall
-   over the windows is measured, not inferred from one seed order, and the weakened
-   checkpoint's drop is pooled over all seeds (one window's 200 seeds put it within about +-6
-   points), with the test replayed on random 200-seed draws from the pooled pairs.
+   one (kept in --out and reused for the same weights) and one `--against` run of each
+   policy: the median wall over the windows is measured, not inferred from one seed order,
+   and the weakened checkpoint's drop is pooled over all seeds (one window's 200 seeds put it
+   within about +-6 points), with the test replayed on random 200-seed draws from the pooled
+   pairs.
 """
 
 from __future__ import annotations
@@ -72,6 +73,28 @@ def run(cmd: list[str]) -> float:
         sys.exit(f"{Path(cmd[0]).name} {cmd[1]} failed ({proc.returncode}):\n"
                  f"{proc.stderr[-3000:]}")
     return time.perf_counter() - t0
+
+
+def weights_of(policy: Path) -> str:
+    """The digest `so101-sim eval` records as a run's policy_weights."""
+    from so101_sim.harness.policies.checks import weights_digest
+
+    return weights_digest(policy / "model.safetensors")
+
+
+def finished(folder: Path, policy: Path) -> bool:
+    """Whether `folder` holds a finished run of `policy`'s weights, kept from an earlier call
+    and reused. A run of other weights there (another --noise or checkpoint into the same
+    --out) is refused: pairing it would mix two policies without a word."""
+    info = folder / "eval_info.json"
+    if not info.exists():
+        return False
+    ran = json.loads(info.read_text(encoding="utf-8")).get("config", {}).get("policy_weights")
+    if ran != (want := weights_of(policy)):
+        sys.exit(f"{folder} holds a run of weights {ran}, not {policy}'s ({want}): another "
+                 "--noise or checkpoint was run into this --out before; choose a new --out "
+                 "(and pass --reference to reuse a reference run of the same checkpoint)")
+    return True
 
 
 def eval_cmd(policy: Path, out: Path, *extra: str) -> list[str]:
@@ -127,12 +150,12 @@ def main() -> None:
     n = str(args.episodes)
 
     ref = Path(args.reference) if args.reference else work / "reference"
-    if not (ref / "eval_info.json").exists():
+    if not finished(ref, ckpt):
         wall = run(eval_cmd(ckpt, ref, "--episodes", n))
         print(f"1. reference: {ckpt} on {n} seeds in {wall:.1f} s")
     weak = weaken(ckpt, work / f"weak_noise{args.noise:g}", args.noise)
     weak_full = work / "weak_full"
-    if not (weak_full / "eval_info.json").exists():
+    if not finished(weak_full, weak):
         run(eval_cmd(weak, weak_full, "--episodes", n))
     from so101_sim.harness.compare import compare_runs, summary_lines
 
@@ -196,7 +219,7 @@ def other_windows(work: Path, ckpt: Path, weak: Path, windows: int, n: int,
         start = str(after + (k - 1) * n)
         ref, weak_full = work / f"reference_{start}", work / f"weak_full_{start}"
         for policy, folder in ((ckpt, ref), (weak, weak_full)):
-            if not (folder / "eval_info.json").exists():
+            if not finished(folder, policy):
                 run(eval_cmd(policy, folder, "--episodes", str(n), "--seed-start", start))
         ref_all.update(outcomes(ref))
         weak_all.update(outcomes(weak_full))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 from script_loader import load_script
 
 BENCH = load_script(Path(__file__).resolve().parents[1] / "benchmarks" / "bench_against.py")
@@ -27,13 +28,16 @@ def _fake_runs(monkeypatch, walls: list[float]) -> list[list[str]]:
                 "verdict": "worse" if weak else "not worse", "episodes": 60}}))
             return next(left)
         start = int(cmd[cmd.index("--seed-start") + 1])
-        (out / "eval_info.json").write_text("{}")
+        policy = Path(cmd[cmd.index("--policy") + 1])
+        (out / "eval_info.json").write_text(json.dumps({"config": {
+            "policy_weights": f"weights of {policy.name}"}}))
         (out / "episodes.jsonl").write_text("".join(
             json.dumps({"seed": s, "success": not weak or s % 2 == 0, "status": "ok"}) + "\n"
             for s in range(start, start + 4)))
         return 99.0
 
     monkeypatch.setattr(BENCH, "run", fake_run)
+    monkeypatch.setattr(BENCH, "weights_of", lambda policy: f"weights of {policy.name}")
     monkeypatch.setattr(BENCH, "outcomes", lambda folder: {
         (r := json.loads(line))["seed"]: r["success"]
         for line in (folder / "episodes.jsonl").read_text().splitlines()})
@@ -74,3 +78,18 @@ def test_each_window_runs_on_its_own_seeds_and_the_median_is_over_windows(
     ran = _fake_runs(monkeypatch, [50.0, 30.0, 70.0, 40.0])
     BENCH.other_windows(tmp_path, Path("ckpt"), Path("weak"), 2, 4, rows, first)
     assert len(ran) == 4 and all("--against" in c for c in ran)
+
+
+def test_a_full_run_of_other_weights_in_out_is_refused_not_reused(tmp_path: Path, monkeypatch
+                                                                  ) -> None:
+    """Another --noise into the same --out: its weakened checkpoint has other weights, so the
+    windows' full runs of the first noise must not be paired with it."""
+    rows = {"weakened": ([45.0], [90], ["worse"]), "itself": ([35.0], [57], ["not worse"])}
+    first = ({s: True for s in range(100000, 100004)}, {s: False for s in range(100000, 100004)})
+    _fake_runs(monkeypatch, [50.0, 30.0])
+    BENCH.other_windows(tmp_path, Path("ckpt"), Path("weak_noise0.014"), 1, 4, rows, first)
+    ran = _fake_runs(monkeypatch, [50.0, 30.0])
+    with pytest.raises(SystemExit, match=r"weak_full_100004 holds a run of weights weights of "
+                       r"weak_noise0.014, not weak_noise0.02's \(weights of weak_noise0.02\)"):
+        BENCH.other_windows(tmp_path, Path("ckpt"), Path("weak_noise0.02"), 1, 4, rows, first)
+    assert ran == []  # the reference of the same checkpoint was reused, nothing else ran
