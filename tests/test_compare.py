@@ -21,6 +21,7 @@ from so101_sim.harness.stats import (
     paired_difference_interval,
     paired_episodes_needed,
     paired_power,
+    paired_split,
 )
 from so101_sim.tasks import load_task
 from so101_sim.testing import assert_not_worse
@@ -48,6 +49,16 @@ def test_newcombe_paired_interval_matches_published_value():
     lo, hi = paired_difference_interval(30, 0, 0, 20)  # identical runs: contains 0, symmetric
     assert lo < 0 < hi and lo == pytest.approx(-hi)
     assert paired_difference_interval(50, 0, 0, 0)[0] >= -1.0
+
+
+def test_paired_split_keeps_only_the_shared_seeds_in_seed_order():
+    a = {12: True, 3: True, 7: False, 5: False, 99: True}  # 99: a's alone
+    b = {3: True, 12: False, 7: True, 5: False, 1: False}  # 1: b's alone
+    assert paired_split(a, b) == ([3], [12], [7], [5])
+    split = paired_split({s: s % 2 == 0 for s in range(20, 0, -1)},
+                         {s: s % 3 == 0 for s in range(1, 21)})
+    assert split.both == [6, 12, 18] and split.neither == [1, 5, 7, 11, 13, 17, 19]
+    assert sum(map(len, split)) == 20 and paired_split({}, b) == ([], [], [], [])
 
 
 def test_paired_needs_fewer_episodes_than_a_measured_baseline():

@@ -1,6 +1,6 @@
 """The eval command's start-up: the collector paused and frozen in a process so101-sim owns,
 and the env workers' fork server and the render self-check started while the checkpoint
-loads."""
+loads; the record command's workers' fork server started while the dataset opens."""
 
 from __future__ import annotations
 
@@ -186,3 +186,62 @@ def test_an_against_run_uses_the_self_check_started_early(tmp_path):
     assert out["rc"] == 0 and out["episodes"] == 1
     # the self-check's numbers came from the early process (here it would have raised)
     assert out["check"] is not None and out["images"].startswith("reduced: rendered at")
+
+
+
+# Where the command opens its dataset (lerobot is imported here from then on), the fork server
+# must be running with the workers' preload: say so, and stop (the server too: it would import
+# on for seconds, holding the pipe subprocess.run reads).
+AT_DATASET = """
+    import json, os, signal, sys
+    from multiprocessing import forkserver
+
+    def stop_here(*args, **kwargs):
+        pid = forkserver._forkserver._forkserver_pid
+        print(json.dumps({"server_pid": pid,
+                          "preload": list(forkserver._forkserver._preload_modules)}))
+        if pid is not None:
+            os.kill(pid, signal.SIGKILL)
+        sys.stdout.flush()
+        os._exit(0)
+"""
+
+RECORD = textwrap.dedent(AT_DATASET + """
+    import so101_sim.dataset.writer as writer
+    from so101_sim.record import record
+
+    writer.open_dataset = stop_here
+    record(sys.argv[1], 1, image_size=(48, 64), progress=False)
+""")
+
+
+def test_record_starts_its_workers_fork_server_before_it_opens_the_dataset(tmp_path):
+    """`record` starts the workers' fork server, importing what they need, before the dataset
+    (and lerobot with it) opens here."""
+    from so101_sim.record.loop import WORKER_PRELOAD
+
+    out = _run(RECORD, str(tmp_path / "ds"))
+    assert out["server_pid"] is not None
+    assert out["preload"][:len(WORKER_PRELOAD)] == list(WORKER_PRELOAD)
+
+
+EXPERT_ROLLOUTS = textwrap.dedent(AT_DATASET + """
+    import so101_sim.harness.rollouts as rollouts
+    from so101_sim.cli import main
+
+    rollouts.rollout_sink = stop_here
+    main(["eval", "--policy", "expert", "--episodes", "1", "--n-envs", "1", "--image-size",
+          "48x64", "--videos", "0", "--out", sys.argv[1], "--save-rollouts", sys.argv[2]])
+""")
+
+
+def test_an_expert_eval_that_saves_rollouts_starts_the_fork_server_before_the_dataset(
+        tmp_path):
+    """Without a checkpoint to load, `eval --save-rollouts` still imports lerobot here for
+    the rollout dataset: the workers' fork server (which imports it too) starts first."""
+    from so101_sim.harness.warmup import worker_preload
+
+    out = _run(EXPERT_ROLLOUTS, str(tmp_path / "eval"), str(tmp_path / "rollouts"))
+    assert out["server_pid"] is not None
+    want = worker_preload(resize=True, rollouts=True, videos=False)
+    assert out["preload"][:len(want)] == list(want)

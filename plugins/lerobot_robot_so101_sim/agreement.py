@@ -390,26 +390,24 @@ def _pair_file(eval_dir: Path) -> Path:
 
 
 def _paired(eval_dir: Path, ours: dict[str, bool]) -> dict[str, Any]:
-    from so101_sim.harness.stats import mcnemar_p_value, paired_difference_interval
+    from so101_sim.harness.stats import mcnemar_p_value, paired_difference_interval, paired_split
 
     theirs = {}
     for line in _pair_file(eval_dir).read_text().splitlines():
         if line.strip():
             rec = json.loads(line)
             if rec.get("status", "ok") == "ok":
-                theirs[str(rec["seed"])] = bool(rec["success"])
-    common = sorted(set(ours) & set(theirs), key=int)
-    both = sum(ours[s] and theirs[s] for s in common)
-    only_a = sum(ours[s] and not theirs[s] for s in common)
-    only_b = sum(theirs[s] and not ours[s] for s in common)
-    neither = len(common) - both - only_a - only_b
+                theirs[int(rec["seed"])] = bool(rec["success"])
+    cells = paired_split({int(s): v for s, v in ours.items()}, theirs)
+    both, only_a, only_b, neither = (len(c) for c in cells)
+    n = both + only_a + only_b + neither
     lo, hi = paired_difference_interval(both, only_a, only_b, neither)
     p = mcnemar_p_value(only_a, only_b)
-    print(f"paired with {eval_dir} on {len(common)} seeds: both {both}, only lerobot {only_a}, "
+    print(f"paired with {eval_dir} on {n} seeds: both {both}, only lerobot {only_a}, "
           f"only so101-sim eval {only_b}, neither {neither}; difference "
-          f"{100 * (only_a - only_b) / max(1, len(common)):+.1f} points (95% "
+          f"{100 * (only_a - only_b) / max(1, n):+.1f} points (95% "
           f"{100 * lo:+.1f} to {100 * hi:+.1f}), McNemar p = {p:.3f}")
-    return {"seeds": len(common), "both": both, "only_lerobot": only_a,
+    return {"seeds": n, "both": both, "only_lerobot": only_a,
             "only_so101_sim_eval": only_b, "neither": neither, "difference95": [lo, hi],
             "mcnemar_p": p}
 

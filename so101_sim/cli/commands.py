@@ -190,13 +190,15 @@ def cmd_eval(args: argparse.Namespace) -> int:
             note = unseen_task_note(checkpoint, task_list(args.task) if suite else [args.task])
             if note:
                 print(note)
-        if args.backend == "local" and checkpoint is not None:
+        if args.backend == "local" and (checkpoint is not None or args.save_rollouts):
             from so101_sim.harness.warmup import start_self_check, warm_eval_workers
 
             # The env workers' fork server imports on the other core while torch and the
-            # policy load here, and the render self-check runs there once it has.
+            # policy (or the rollout dataset's lerobot) load here, and the render self-check
+            # runs there once it has.
             if (warm_eval_workers(videos=args.videos > 0,
                                   rollouts=args.save_rollouts is not None)
+                    and checkpoint is not None
                     and not (suite or args.faithful or args.image_size)):
                 start_self_check(checkpoint, args.task, args.camera_map)
         with startup_objects():  # torch's and the checkpoint's objects live to the end

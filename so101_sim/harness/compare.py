@@ -15,7 +15,12 @@ from pathlib import Path
 from typing import Any
 
 from so101_sim.harness.results import CONFIG, EPISODES, INFO, check_eval_info
-from so101_sim.harness.stats import mcnemar_p_value, paired_difference_interval, wilson_interval
+from so101_sim.harness.stats import (
+    mcnemar_p_value,
+    paired_difference_interval,
+    paired_split,
+    wilson_interval,
+)
 from so101_sim.utils.atomic import write_json_atomic, write_text_atomic
 from so101_sim.utils.text import counted, md_row
 from so101_sim.utils.versions import SETUP_KEYS, setup_differences
@@ -230,12 +235,9 @@ def same_folder_warning(folder: str | Path) -> str:
 
 
 def paired_result(a: RunSide, b: RunSide) -> dict[str, Any]:
-    seeds = sorted(a.success)
-    both = [s for s in seeds if a.success[s] and b.success[s]]
-    only_a = [s for s in seeds if a.success[s] and not b.success[s]]
-    only_b = [s for s in seeds if b.success[s] and not a.success[s]]
-    neither = len(seeds) - len(both) - len(only_a) - len(only_b)
-    n = len(seeds)
+    seeds = sorted(a.success)  # check_comparable: b has the same seeds
+    both, only_a, only_b, neither_seeds = paired_split(a.success, b.success)
+    n, neither = len(seeds), len(neither_seeds)
     lo, hi = paired_difference_interval(len(both), len(only_a), len(only_b), neither)
     same = sum(1 for s in seeds if a.actions_sha.get(s) and a.actions_sha[s] == b.actions_sha[s])
     return {

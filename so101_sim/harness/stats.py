@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Mapping
+from typing import Any, NamedTuple
 
 Z95 = 1.959963984540054  # two-sided 95% normal quantile
 
@@ -124,6 +126,26 @@ def episodes_needed_measured(baseline: float, true_rate: float, alpha: float = 0
 
 
 # ----------------------------------------------------------------------- paired (same seeds)
+class PairedSplit(NamedTuple):
+    """The seeds two runs share, by outcome, each list in seed order."""
+
+    both: list
+    only_a: list
+    only_b: list
+    neither: list
+
+
+def paired_split(a: Mapping[Any, bool], b: Mapping[Any, bool]) -> PairedSplit:
+    """Split the seeds in both `a` and `b` (seed -> success) into the paired table's cells:
+    the counts `mcnemar_p_value` and `paired_difference_interval` take."""
+    split = PairedSplit([], [], [], [])
+    for seed in sorted(a.keys() & b.keys()):
+        cell = ((split.both if b[seed] else split.only_a) if a[seed] else
+                (split.only_b if b[seed] else split.neither))
+        cell.append(seed)
+    return split
+
+
 def mcnemar_p_value(only_a: int, only_b: int, alternative: str = "two-sided") -> float:
     """Exact McNemar p-value from the discordant seeds (A succeeded alone / B alone).
 
@@ -243,6 +265,7 @@ def _check_counts(successes: int, n: int) -> None:
 
 __all__ = [
     "Z95",
+    "PairedSplit",
     "binom_cdf",
     "critical_successes",
     "episodes_needed",
@@ -252,6 +275,7 @@ __all__ = [
     "paired_difference_interval",
     "paired_episodes_needed",
     "paired_power",
+    "paired_split",
     "power_below",
     "wilson_interval",
 ]

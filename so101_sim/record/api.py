@@ -50,6 +50,7 @@ from so101_sim.utils.text import counted
 from so101_sim.utils.versions import installed
 from so101_sim.utils.video_backend import quiet_libav
 from so101_sim.workers import check_backend
+from so101_sim.workers.local import start_fork_server
 
 
 def _check_args(n_episodes: int, workers: int, seed_start: int, vcodec: str | None,
@@ -115,7 +116,7 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path | None = None,
     time_physics / time_render / cpu_seconds spent by all recording processes).
     """
     from so101_sim.dataset.writer import open_dataset
-    from so101_sim.record.loop import Tally, record_episodes
+    from so101_sim.record.loop import WORKER_PRELOAD, Tally, record_episodes
     from so101_sim.record.worker import RecorderSpec
 
     _check_args(n_episodes, workers, seed_start, vcodec, checkpoint_every,
@@ -146,6 +147,9 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path | None = None,
         if spec.fps != 30:
             raise ValueError(f"task fps is {spec.fps}; the dataset is recorded at 30 fps")
         cams = check_cameras(spec.cameras if cameras is None else cameras)
+        if backend == "local":  # the workers' fork server imports torch on the other core
+            # while open_dataset imports lerobot here (they took turns: ~6 s each)
+            start_fork_server(WORKER_PRELOAD)
         cpu0 = time.process_time()
         opened = open_dataset(root, resume, repo_id, task_arg, image_size, seed_start,
                               dart_noise, vcodec, spec.max_steps + 2, expert, cams,

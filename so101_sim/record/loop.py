@@ -29,6 +29,11 @@ from so101_sim.workers import start_pool
 MAX_RETRIES = 2  # a seed whose worker died this many times more is an error
 
 
+#: What the local fork server imports once for every recording worker: the env, the expert, and
+#: lerobot's video encoder (which brings torch: most of the server's ~6 s of start-up).
+WORKER_PRELOAD = ("so101_sim.record.worker", "lerobot.datasets.video_utils", "so101_sim.sim.env",
+                  "so101_sim.expert")
+
 @dataclass
 class Tally:
     """Counts, sidecar and progress bar of one recording."""
@@ -171,8 +176,7 @@ def record_episodes(opened: Opened, tally: Tally, spec: RecorderSpec, workers: i
         try:
             pool = start_pool(spec, workers, backend=backend, ray_address=ray_address,
                               name="so101-record-worker",
-                              preload=("so101_sim.record.worker", "lerobot.datasets.video_utils",
-                                       "so101_sim.sim.env", "so101_sim.expert"))
+                              preload=WORKER_PRELOAD)
             tally.worker_start_s = pool.start_s
             while True:
                 interrupts.check()  # a Ctrl-C lost in a garbage-collection callback
