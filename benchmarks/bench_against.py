@@ -29,6 +29,7 @@ median wall. Steps, all with the harness defaults (render path, 16 envs), seeds 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import shutil
@@ -75,6 +76,7 @@ def run(cmd: list[str]) -> float:
     return time.perf_counter() - t0
 
 
+@functools.cache  # each kept folder asks: a checkpoint's weights are read once per call
 def weights_of(policy: Path) -> str:
     """The digest `so101-sim eval` records as a run's policy_weights."""
     from so101_sim.harness.policies.checks import weights_digest

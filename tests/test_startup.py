@@ -188,7 +188,6 @@ def test_an_against_run_uses_the_self_check_started_early(tmp_path):
     assert out["check"] is not None and out["images"].startswith("reduced: rendered at")
 
 
-
 # Where the command opens its dataset (lerobot is imported here from then on), the fork server
 # must be running with the workers' preload: say so, and stop (the server too: it would import
 # on for seconds, holding the pipe subprocess.run reads).

@@ -28,11 +28,11 @@ from so101_sim.workers import start_pool
 
 MAX_RETRIES = 2  # a seed whose worker died this many times more is an error
 
-
 #: What the local fork server imports once for every recording worker: the env, the expert, and
 #: lerobot's video encoder (which brings torch: most of the server's ~6 s of start-up).
 WORKER_PRELOAD = ("so101_sim.record.worker", "lerobot.datasets.video_utils", "so101_sim.sim.env",
                   "so101_sim.expert")
+
 
 @dataclass
 class Tally:
