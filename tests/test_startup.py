@@ -1,6 +1,7 @@
 """The eval command's start-up: the collector paused and frozen in a process so101-sim owns,
 and the env workers' fork server and the render self-check started while the checkpoint
-loads; the record command's workers' fork server started while the dataset opens."""
+loads; the record command's workers' fork server started while the dataset opens, and the
+curve command's before its first checkpoint loads."""
 
 from __future__ import annotations
 
@@ -243,4 +244,28 @@ def test_an_expert_eval_that_saves_rollouts_starts_the_fork_server_before_the_da
     out = _run(EXPERT_ROLLOUTS, str(tmp_path / "eval"), str(tmp_path / "rollouts"))
     assert out["server_pid"] is not None
     want = worker_preload(resize=True, rollouts=True, videos=False)
+    assert out["preload"][:len(want)] == list(want)
+
+
+CURVE = textwrap.dedent(AT_DATASET + """
+    import so101_sim.harness.runner as runner
+    from so101_sim.cli import main
+
+    runner.evaluate = stop_here  # where the first checkpoint's evaluation would load it
+    main(["curve", sys.argv[1], "--episodes", "1", "--n-envs", "1"])
+""")
+
+
+def test_curve_starts_the_workers_fork_server_before_its_first_checkpoint_loads(tmp_path):
+    """`so101-sim curve` imports torch and loads each checkpoint here: the workers' fork
+    server is already importing what they need on the other core when the first one does."""
+    from tiny_policy import make_tiny_diffusion_checkpoint
+
+    from so101_sim.harness.warmup import worker_preload
+
+    run = tmp_path / "run"
+    make_tiny_diffusion_checkpoint(run / "checkpoints" / "step_0000100" / "pretrained_model")
+    out = _run(CURVE, str(run))
+    assert out["server_pid"] is not None
+    want = worker_preload(resize=True, rollouts=False, videos=False)
     assert out["preload"][:len(want)] == list(want)

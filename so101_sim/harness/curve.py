@@ -123,6 +123,12 @@ def _evaluate_missing(run: Path, checkpoints: list[tuple[int, Path]], episodes: 
     chosen = [(s, p) for s, p in checkpoints
               if (steps is None or s in steps) and (every <= 0 or s % every == 0)
               and s not in done]
+    if chosen:
+        from so101_sim.harness.warmup import warm_eval_workers
+
+        # The first evaluation loads torch and its checkpoint here before it starts the env
+        # workers: their fork server imports on the other core meanwhile, as eval's does.
+        warm_eval_workers(videos=False)
     interrupts = Interrupts()  # SIGTERM too ends with the CLI's line, not a bare kill
     interrupts.install()
     try:
