@@ -189,10 +189,11 @@ def test_an_against_run_uses_the_self_check_started_early(tmp_path):
     assert out["check"] is not None and out["images"].startswith("reduced: rendered at")
 
 
-# Where the command opens its dataset (lerobot is imported here from then on), the fork server
-# must be running with the workers' preload: say so, and stop (the server too: it would import
-# on for seconds, holding the pipe subprocess.run reads).
-AT_DATASET = """
+# Where the command starts its heavy import here (opening a dataset imports lerobot; curve's
+# first evaluation loads torch and the checkpoint), the fork server must be running with the
+# workers' preload: say so, and stop (the server too: it would import on for seconds, holding
+# the pipe subprocess.run reads).
+STOP_HERE = """
     import json, os, signal, sys
     from multiprocessing import forkserver
 
@@ -206,7 +207,7 @@ AT_DATASET = """
         os._exit(0)
 """
 
-RECORD = textwrap.dedent(AT_DATASET + """
+RECORD = textwrap.dedent(STOP_HERE + """
     import so101_sim.dataset.writer as writer
     from so101_sim.record import record
 
@@ -225,7 +226,7 @@ def test_record_starts_its_workers_fork_server_before_it_opens_the_dataset(tmp_p
     assert out["preload"][:len(WORKER_PRELOAD)] == list(WORKER_PRELOAD)
 
 
-EXPERT_ROLLOUTS = textwrap.dedent(AT_DATASET + """
+EXPERT_ROLLOUTS = textwrap.dedent(STOP_HERE + """
     import so101_sim.harness.rollouts as rollouts
     from so101_sim.cli import main
 
@@ -247,7 +248,7 @@ def test_an_expert_eval_that_saves_rollouts_starts_the_fork_server_before_the_da
     assert out["preload"][:len(want)] == list(want)
 
 
-CURVE = textwrap.dedent(AT_DATASET + """
+CURVE = textwrap.dedent(STOP_HERE + """
     import so101_sim.harness.runner as runner
     from so101_sim.cli import main
 
