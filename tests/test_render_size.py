@@ -51,3 +51,33 @@ def test_an_explicit_size_renders_what_the_default_path_renders_at_that_size():
     assert "mesh detail of the recorded 640 px width" in explicit.label
     assert choose_rendering(info, (60, 80)).mesh_width is None  # direct: 80 px meshes
     assert choose_rendering(info, (480, 640)).mesh_width is None  # faithful: its own 640
+
+
+def test_a_second_evaluation_with_the_same_inputs_reuses_the_self_checks_answer(monkeypatch):
+    """`so101-sim curve` evaluates every checkpoint of a run in one process. The check renders
+    fixed reset frames, so only the first evaluation with given inputs runs it and the rest
+    report the same numbers; other inputs (here another task) are checked on their own."""
+    import so101_sim.harness.frames as frames
+    from so101_sim.harness.frames import choose_rendering
+    from so101_sim.harness.policies import PolicyInfo
+
+    calls, real = [], frames._self_check
+
+    def counted(task, *args):
+        calls.append(task.name)
+        return real(task, *args)
+
+    monkeypatch.setattr(frames, "_self_check", counted)
+    monkeypatch.setattr(frames, "_ANSWERS", {})
+    info = PolicyInfo(name="p", cameras=("front", "side"), image_size=(60, 80),
+                      train_image_size=(480, 640), n_obs_steps=2, n_action_steps=8)
+    first, second = (choose_rendering(info, None, task=load_task("pick_place"),
+                                      log=lambda line: None) for _ in range(2))
+    assert calls == ["pick_place"]
+    assert first.render_size == second.render_size == (180, 240)
+    assert first.check == second.check and len(second.check["tried"]) == 3
+    first.check["tried"].clear()  # one evaluation's copy: the next one still gets the numbers
+    again = choose_rendering(info, None, task=load_task("pick_place"), log=lambda line: None)
+    assert len(again.check["tried"]) == 3
+    other = choose_rendering(info, None, task=load_task("lift"), log=lambda line: None)
+    assert calls == ["pick_place", "lift"] and other.check["tried"]
