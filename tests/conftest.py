@@ -42,11 +42,16 @@ def state_env():
 
 
 @pytest.fixture
-def kill_tmpdir():
-    """A TMPDIR for a process the test kills: what it had in flight (multiprocessing's pymp-*
-    folder, lerobot's temporary files) goes with this folder instead of staying in /tmp. Short,
-    since a fork server's socket path inside it must stay under 108 bytes."""
-    path = tempfile.mkdtemp(prefix="so101-kill-")
+def child_tmpdir(monkeypatch):
+    """A TMPDIR for the child processes a test starts, whose temporary files would stay in
+    /tmp: what a killed or ``os._exit``-ing process had in flight (multiprocessing's pymp-*
+    folder) and what lerobot never removes (a tmp*.json per policy config it parses) go with
+    this folder. Set in os.environ for children that copy it; this process's own tempfile
+    folder is looked up first, so it stays where it was. Short, since a fork server's socket
+    path inside it must stay under 108 bytes."""
+    tempfile.gettempdir()  # cached now: only children see the new TMPDIR
+    path = tempfile.mkdtemp(prefix="so101-child-")
+    monkeypatch.setenv("TMPDIR", path)
     yield path
     shutil.rmtree(path, ignore_errors=True)
 

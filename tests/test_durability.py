@@ -86,10 +86,10 @@ def _total_episodes(root: Path) -> int:
     ("timed", 2, 0),  # the whole process group, at whatever moment episode 3 is saved
 ], ids=["mid-episode", "in-save_episode", "after-finalize", "after-checkpoint", "group-kill"])
 def test_sigkill_then_resume_keeps_every_episode(reference: Path, tmp_path: Path, point: str,
-                                                 workers: int, min_reused: int, kill_tmpdir: str,
+                                                 workers: int, min_reused: int, child_tmpdir: str,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
     root = tmp_path / "ds"
-    env = {**ENV, "TMPDIR": kill_tmpdir}
+    env = {**ENV, "TMPDIR": child_tmpdir}
     if point != "timed":
         env[CRASH_ENV] = point
     proc = subprocess.Popen(_cli(root, workers), env=env, start_new_session=True,

@@ -13,6 +13,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -737,6 +738,7 @@ def test_agreement_refuses_an_unknown_task_before_it_runs(tmp_path):
 
 # ------------------------------------------------------------------ lerobot's console scripts
 @pytest.mark.slow
+@pytest.mark.usefixtures("child_tmpdir")
 def test_lerobot_record_with_the_expert_then_train_and_replay(tmp_path):
     """lerobot-record writes one dataset episode per seed, each a success (the expert solves
     seeds 0 and 1); so101-sim's trainer reads it; lerobot-replay re-runs episode 1 exactly.
@@ -803,6 +805,7 @@ def test_lerobot_record_with_the_expert_then_train_and_replay(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("child_tmpdir")
 def test_lerobot_teleoperate_with_the_expert(tmp_path):
     run = _run([BIN / "lerobot-teleoperate", "--robot.type=so101_sim",
                 f"--robot.image_height={H}", f"--robot.image_width={W}",
@@ -813,6 +816,7 @@ def test_lerobot_teleoperate_with_the_expert(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("child_tmpdir")
 def test_lerobot_rollout_runs_the_shipped_policy(tmp_path):
     """Base strategy for 3 s; the episodic strategy through agreement.py: one dataset episode
     per seed, frames rendered larger and resized to the policy's 60x80 as so101-sim eval does."""
@@ -858,6 +862,7 @@ def _listening(port: int) -> bool:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["act", "diffusion"])
+@pytest.mark.usefixtures("child_tmpdir")
 def test_async_inference_drives_the_sim(tmp_path, kind):
     """lerobot's policy server and robot client, unchanged, on a loopback port, for a tiny
     ACT; lerobot 0.6.1's server cannot run a Diffusion Policy with n_obs_steps > 1 (see
@@ -902,7 +907,7 @@ def test_async_inference_drives_the_sim(tmp_path, kind):
     assert (first["seed"], first["ended_by"]) == (0, "env") and 0 < first["steps"] <= 20
 
 
-def test_the_patched_server_runs_a_diffusion_policy_on_one_observation(monkeypatch):
+def test_the_patched_server_runs_a_diffusion_policy_on_one_observation(monkeypatch, tmp_path):
     """lerobot 0.6.1's policy server hands predict_action_chunk one observation and no history:
     the shipped Diffusion Policy (n_obs_steps=2) fails on that unpatched and returns a chunk
     once lerobot_robot_so101_sim.patched_server has patched it."""
@@ -913,6 +918,7 @@ def test_the_patched_server_runs_a_diffusion_policy_on_one_observation(monkeypat
     # the patch is class-wide: monkeypatch puts lerobot's own method back after the test
     monkeypatch.setattr(DiffusionPolicy, "predict_action_chunk",
                         DiffusionPolicy.predict_action_chunk)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # lerobot's leftover tmp*.json
     policy = DiffusionPolicy.from_pretrained(SHIPPED).eval()
     assert policy.config.n_obs_steps == 2
     batch = {key: torch.rand(1, *feature.shape)
@@ -930,6 +936,7 @@ def test_the_patched_server_runs_a_diffusion_policy_on_one_observation(monkeypat
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("child_tmpdir")
 def test_agreement_async_names_the_servers_error_on_damaged_weights(tmp_path):
     # before: "could not reach the policy server", though it was up and had raised on them
     policy, out = tmp_path / "policy", tmp_path / "out"
@@ -944,6 +951,7 @@ def test_agreement_async_names_the_servers_error_on_damaged_weights(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("child_tmpdir")
 def test_agreement_async_runs_the_shipped_diffusion_policy(tmp_path):
     run = _run([sys.executable, AGREEMENT, "async", "--episodes", "1"], tmp_path)
     assert run.returncode != 0 and "issues/3861" in run.stderr and "--patch-diffusion" in \

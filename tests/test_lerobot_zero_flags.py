@@ -44,6 +44,7 @@ def test_fps_and_episode_length_follow_the_task(tmp_path):
         SO101PickPlaceEnvConfig(task=str(tmp_path / "pick_place_48.toml"), episode_length=49)
 
 
+@pytest.mark.usefixtures("child_tmpdir")
 def test_lerobot_eval_runs_without_discovery_flags(tmp_path):
     """`lerobot-eval --env.type=so101_pick_place --env.task=... --policy.path=...`, nothing else
     about the plugin or the frame size: the entry point users run, in its own process. The env

@@ -246,7 +246,7 @@ def test_resume_needs_the_same_rollouts_folder(runs, tmp_path, capsys):
     assert _dataset(base / "ds").num_episodes == len(SEEDS)  # untouched
 
 
-def test_sigkill_sigterm_then_resume_records_every_seed_once(tmp_path, kill_tmpdir):
+def test_sigkill_sigterm_then_resume_records_every_seed_once(tmp_path, child_tmpdir):
     """Killed between an episode's spool and its episodes.jsonl line, then (resumed) inside
     lerobot's save_episode, then SIGTERM: each ends with a dataset --resume can finish, and
     the last --resume ends with every seed once, as episodes.jsonl has them."""
@@ -260,7 +260,7 @@ def test_sigkill_sigterm_then_resume_records_every_seed_once(tmp_path, kill_tmpd
         code = ("from so101_sim.harness import evaluate\n"
                 f"evaluate('expert', resume={resume}, **{args!r})\n")
         proc = subprocess.run([sys.executable, "-c", code],
-                              env={**ENV, CRASH_ENV: point, "TMPDIR": kill_tmpdir},
+                              env={**ENV, CRASH_ENV: point, "TMPDIR": child_tmpdir},
                               capture_output=True, text=True, timeout=300)
         assert proc.returncode == -signal.SIGKILL, proc.stderr[-3000:]
         if not resume:  # two episodes spooled, the second one's line never written

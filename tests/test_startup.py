@@ -12,6 +12,8 @@ import sys
 import textwrap
 from pathlib import Path
 
+import pytest
+
 COLLECTOR = textwrap.dedent("""
     import gc, json, sys, weakref
     from so101_sim.utils.collector import freeze_for_exit, own_process, startup_objects
@@ -216,6 +218,7 @@ RECORD = textwrap.dedent(STOP_HERE + """
 """)
 
 
+@pytest.mark.usefixtures("child_tmpdir")
 def test_record_starts_its_workers_fork_server_before_it_opens_the_dataset(tmp_path):
     """`record` starts the workers' fork server, importing what they need, before the dataset
     (and lerobot with it) opens here."""
@@ -236,6 +239,7 @@ EXPERT_ROLLOUTS = textwrap.dedent(STOP_HERE + """
 """)
 
 
+@pytest.mark.usefixtures("child_tmpdir")
 def test_an_expert_eval_that_saves_rollouts_starts_the_fork_server_before_the_dataset(
         tmp_path):
     """Without a checkpoint to load, `eval --save-rollouts` still imports lerobot here for
@@ -257,6 +261,7 @@ CURVE = textwrap.dedent(STOP_HERE + """
 """)
 
 
+@pytest.mark.usefixtures("child_tmpdir")
 def test_curve_starts_the_workers_fork_server_before_its_first_checkpoint_loads(tmp_path):
     """`so101-sim curve` imports torch and loads each checkpoint here: the workers' fork
     server is already importing what they need on the other core when the first one does."""

@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -301,11 +302,14 @@ def test_bf16_precision_trains_and_is_recorded(dataset: Path, tiny: Path, tmp_pa
         train(dataset, tmp_path / "x", preset_name=str(tiny), steps=1, precision="fp16")
 
 
-def test_checkpoint_loads_through_lerobot(dataset: Path, tiny: Path, tmp_path: Path) -> None:
+def test_checkpoint_loads_through_lerobot(dataset: Path, tiny: Path, tmp_path: Path,
+                                         monkeypatch: pytest.MonkeyPatch) -> None:
     from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
     from lerobot.policies.factory import make_pre_post_processors
 
     r = train(dataset, tmp_path / "run", preset_name=str(tiny), steps=2, progress=False)
+    # lerobot leaves a tmp*.json per config it parses: in tmp_path, not /tmp
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     policy = DiffusionPolicy.from_pretrained(r.pretrained_dir).eval()
     pre, post = make_pre_post_processors(policy.config, pretrained_path=str(r.pretrained_dir))
     obs = {"observation.state": torch.zeros(1, 6),
@@ -339,6 +343,7 @@ def test_checkpoint_loads_through_lerobot(dataset: Path, tiny: Path, tmp_path: P
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("child_tmpdir")
 def test_lerobot_eval_runs_the_checkpoint(dataset: Path, tiny: Path, tmp_path: Path) -> None:
     r = train(dataset, tmp_path / "run", preset_name=str(tiny), steps=1, progress=False)
     exe = Path(sys.executable).parent / "lerobot-eval"
