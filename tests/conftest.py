@@ -57,6 +57,14 @@ def child_tmpdir(monkeypatch):
 
 
 @pytest.fixture
+def lerobot_tempfiles(monkeypatch, tmp_path):
+    """This process's tempfile folder is the test's tmp_path: lerobot's
+    ``PreTrainedConfig.from_pretrained`` (``DiffusionPolicy.from_pretrained`` in a test) copies
+    each config it parses to a tmp*.json it never removes."""
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+
+
+@pytest.fixture
 def lose_a_ctrl_c(monkeypatch):
     """A function that sends this process SIGINT while a weakref callback runs, where Python
     prints and drops the handler's KeyboardInterrupt (as during garbage collection); it

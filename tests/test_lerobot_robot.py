@@ -13,7 +13,6 @@ import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -907,7 +906,8 @@ def test_async_inference_drives_the_sim(tmp_path, kind):
     assert (first["seed"], first["ended_by"]) == (0, "env") and 0 < first["steps"] <= 20
 
 
-def test_the_patched_server_runs_a_diffusion_policy_on_one_observation(monkeypatch, tmp_path):
+@pytest.mark.usefixtures("lerobot_tempfiles")
+def test_the_patched_server_runs_a_diffusion_policy_on_one_observation(monkeypatch):
     """lerobot 0.6.1's policy server hands predict_action_chunk one observation and no history:
     the shipped Diffusion Policy (n_obs_steps=2) fails on that unpatched and returns a chunk
     once lerobot_robot_so101_sim.patched_server has patched it."""
@@ -918,7 +918,6 @@ def test_the_patched_server_runs_a_diffusion_policy_on_one_observation(monkeypat
     # the patch is class-wide: monkeypatch puts lerobot's own method back after the test
     monkeypatch.setattr(DiffusionPolicy, "predict_action_chunk",
                         DiffusionPolicy.predict_action_chunk)
-    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # lerobot's leftover tmp*.json
     policy = DiffusionPolicy.from_pretrained(SHIPPED).eval()
     assert policy.config.n_obs_steps == 2
     batch = {key: torch.rand(1, *feature.shape)

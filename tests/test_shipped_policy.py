@@ -6,7 +6,6 @@ as many seeds as that task's rate needs for the test to be able to fail)."""
 from __future__ import annotations
 
 import json
-import tempfile
 from pathlib import Path
 
 import pytest
@@ -65,12 +64,11 @@ def test_seeds_for_sizes_the_test_so_it_can_fail() -> None:
 
 
 @pytest.mark.parametrize("folder", FOLDERS, ids=[f.name for f in FOLDERS])
-def test_shipped_policy_loads_fp32_through_lerobot(folder: Path, tmp_path: Path,
-                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.usefixtures("lerobot_tempfiles")
+def test_shipped_policy_loads_fp32_through_lerobot(folder: Path) -> None:
     import torch
     from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
 
-    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # lerobot's leftover tmp*.json
     policy = DiffusionPolicy.from_pretrained(folder)
     dtypes = {p.dtype for p in policy.parameters()}
     assert dtypes == {torch.float32}

@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -302,14 +301,12 @@ def test_bf16_precision_trains_and_is_recorded(dataset: Path, tiny: Path, tmp_pa
         train(dataset, tmp_path / "x", preset_name=str(tiny), steps=1, precision="fp16")
 
 
-def test_checkpoint_loads_through_lerobot(dataset: Path, tiny: Path, tmp_path: Path,
-                                         monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.usefixtures("lerobot_tempfiles")
+def test_checkpoint_loads_through_lerobot(dataset: Path, tiny: Path, tmp_path: Path) -> None:
     from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
     from lerobot.policies.factory import make_pre_post_processors
 
     r = train(dataset, tmp_path / "run", preset_name=str(tiny), steps=2, progress=False)
-    # lerobot leaves a tmp*.json per config it parses: in tmp_path, not /tmp
-    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     policy = DiffusionPolicy.from_pretrained(r.pretrained_dir).eval()
     pre, post = make_pre_post_processors(policy.config, pretrained_path=str(r.pretrained_dir))
     obs = {"observation.state": torch.zeros(1, 6),
