@@ -130,7 +130,8 @@ def test_no_file_imports_another_files_private_names():
 def test_a_short_top_level_and_short_modules():
     top = sorted(p.name for p in PKG.glob("*.py"))
     assert len(top) <= 12, top
-    long = {str(p.relative_to(PKG)): n for p in PKG.rglob("*.py")
+    plugin = PKG.parent / "plugins" / "lerobot_robot_so101_sim"  # its package and script too
+    long = {str(p.relative_to(PKG.parent)): n for p in [*PKG.rglob("*.py"), *plugin.rglob("*.py")]
             if (n := len(p.read_text().splitlines())) > 400}
     assert long == {}
 

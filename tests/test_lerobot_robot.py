@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
+from eval_folders import write_eval_run
 from lerobot_robot_so101_sim import (
     SO101Sim,
     SO101SimConfig,
@@ -32,6 +33,7 @@ from script_loader import load_script
 from tiny_act import make_tiny_act_checkpoint
 from tiny_policy import short_task
 
+from so101_sim.tasks import load_task
 from so101_sim.utils.units import FEATURE_NAMES
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -598,16 +600,61 @@ def test_the_expert_finds_its_robot_by_id(tmp_path):
         connected_robot()
 
 
+def _outcome(seed: int, success: bool, failure_mode: str | None = None) -> dict:
+    """One line of the robot's outcomes.jsonl, as SO101Sim writes it at an episode's end."""
+    return {"seed": seed, "success": success, "steps": 120, "discarded": False,
+            "ended_by": "env", "failure_mode": None if success else failure_mode or "dropped"}
+
+
 def test_agreement_pairs_seeds_with_an_eval_folder(tmp_path, capsys):
+    # lerobot's outcomes on seeds 10..14 (14 still running when lerobot's episode ended), the
+    # eval's on 9..13: paired on 10..13 as `so101-sim compare` pairs, lerobot as A
     agreement = load_script(AGREEMENT)
-    (tmp_path / "episodes.jsonl").write_text("".join(
-        json.dumps({"seed": s, "episode_ix": i, "status": "ok", "success": ok}) + "\n"
-        for i, (s, ok) in enumerate([(10, True), (11, True), (12, False), (13, False)])))
-    ours = {"10": True, "11": False, "12": True, "13": False, "14": True}
-    paired = agreement._paired(tmp_path, ours)
-    assert (paired["seeds"], paired["both"], paired["only_lerobot"],
-            paired["only_so101_sim_eval"], paired["neither"]) == (4, 1, 1, 1, 1)
-    assert paired["mcnemar_p"] == 1.0 and "McNemar p = 1.000" in capsys.readouterr().out
+    evald = write_eval_run(tmp_path / "eval", {9: True, 10: True, 11: True, 12: False,
+                                               13: False}, sha=load_task("pick_place").sha256())
+    args = agreement._parser().parse_args(["rollout", "--seed-start", "10", "--episodes", "5",
+                                           "--pair", str(evald)])
+    pair = agreement._pair_run(evald, load_task("pick_place"), range(10, 15), args)
+    out = tmp_path / "out"
+    out.mkdir()
+    rows = [_outcome(10, True), _outcome(11, False), _outcome(12, True), _outcome(13, False),
+            _outcome(14, False, "unfinished")]
+    (out / "outcomes.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert agreement._report(args, out, out / "outcomes.jsonl", [], pair) == 1  # unfinished
+    said = capsys.readouterr().out
+    paired = json.loads((out / "agreement.json").read_text())["paired"]
+    assert paired["n_seeds"] == 4 and paired["seeds"] == "10..13", paired
+    assert paired["paired"] == {"both": 1, "only_a": 1, "only_b": 1, "neither": 1}, paired
+    assert paired["a"]["policy"].startswith("lerobot-rollout of ") and \
+        paired["b"]["run"] == str(evald), paired
+    assert paired["mcnemar_p_two_sided"] == 1.0, paired
+    assert "paired on 4 seeds of pick_place (10..13): both succeed 1, only A 1, only B 1, " \
+        "neither 1" in said, said
+
+
+def test_agreement_refuses_a_pair_folder_of_another_task_or_seeds_before_it_runs(tmp_path,
+                                                                                 capsys):
+    agreement = load_script(AGREEMENT)
+    stack = write_eval_run(tmp_path / "stack", {100_000: True}, task="stack")
+    pick = write_eval_run(tmp_path / "pick", {5: True, 6: False},
+                          sha=load_task("pick_place").sha256())
+    edited = write_eval_run(tmp_path / "edited", {100_000: True})  # another task_sha256
+    for folder, said in [
+        (stack, f"--pair {stack} is an eval of task 'stack'; this run is --task 'pick_place'"),
+        (edited, f"--pair {edited} is an eval of task 'pick_place' with other settings"),
+        (pick, f"--pair {pick} holds seeds 5..6, none of this run's 100000..100001"),
+    ]:
+        with pytest.raises(SystemExit) as stop:
+            agreement.main(["rollout", "--episodes", "2", "--pair", str(folder),
+                            "--out", str(tmp_path / "out"), "--policy", str(tmp_path / "no")])
+        assert str(stop.value.code).startswith(said), stop.value.code
+        assert "pair with the folder of `so101-sim eval --policy" in str(stop.value.code)
+    assert not (tmp_path / "out").exists()
+    # some of the seeds: said in one line, then the run goes on (here: to the missing policy)
+    with pytest.raises(SystemExit, match=r"no config\.json there"):
+        agreement.main(["rollout", "--episodes", "3", "--seed-start", "5", "--pair", str(pick),
+                        "--out", str(tmp_path / "out"), "--policy", str(tmp_path / "no")])
+    assert f"--pair {pick} lacks 1 of the 3 seeds (7)" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(("flag", "value", "expected"), [
@@ -654,7 +701,8 @@ def test_agreement_refuses_a_pair_folder_without_an_eval_before_it_runs(tmp_path
                                      "--out", str(tmp_path / "out"),
                                      "--policy", str(tmp_path / "no_policy")])
     said = str(stop.value.code)
-    assert said.startswith(f"--pair {tmp_path / 'not_an_eval'}: no episodes.jsonl there"), said
+    assert said.startswith(f"--pair: {tmp_path / 'not_an_eval'} has no eval_info.json: "
+                           "expected the --out folder of a finished `so101-sim eval`"), said
     assert not (tmp_path / "out").exists()
 
 

@@ -17,21 +17,18 @@ process, unchanged, timing each action chunk from the observation's capture to i
 the sim starts the next seed as soon as an episode ends and the client has no notion of
 episodes, so the first chunk of an episode may still come from the previous one's frames
 (lerobot's own log files go to ``<out>/logs``). Per-seed lines, the rate with its Wilson
-interval and a JSON summary (``<out>/agreement.json``) come out; ``--pair DIR`` adds the paired
-table against an ``so101-sim eval`` folder (its ``episodes.jsonl``).
+interval and a JSON summary (``<out>/agreement.json``) come out; ``--pair DIR`` adds ``so101-sim
+compare``'s paired table (lerobot as A) against a finished ``so101-sim eval`` folder of the same
+task, read and checked before lerobot starts.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
-import socket
 import subprocess
 import sys
-import threading
-import time
 from pathlib import Path
 from typing import Any
 
@@ -51,15 +48,16 @@ LEROBOT_ISSUE = "https://github.com/huggingface/lerobot/issues/3861"
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    if args.pair:  # read only at the end: a wrong folder found then cost the whole run
-        _pair_file(Path(args.pair))
+    task = _task(args.task)
+    seeds = range(args.seed_start, args.seed_start + args.episodes)
+    # used only at the end, read now: a wrong folder found then cost the whole run
+    pair = _pair_run(Path(args.pair), task, seeds, args) if args.pair else None
     out = Path(args.out or f"outputs/agreement/{args.mode}")
     if (blocking := file_in_the_way(out)) is not None:  # mkdir raised FileExistsError or
         # NotADirectoryError
         raise SystemExit(f"--out {out}: {blocking} is a file; expected a folder for the "
                          "outcomes, logs and agreement.json: choose another --out")
     policy = _policy_info(Path(args.policy))
-    task = _task(args.task)
     outcomes_path = out / "outcomes.jsonl"
     robot = _robot_flags(args, policy, outcomes_path)
     if args.mode == "async":
@@ -71,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         _run_rollout(args, policy, task, out, robot)
     else:
         latency = _run_async(args, policy, task, out, robot)
-    return _report(args, out, outcomes_path, latency)
+    return _report(args, out, outcomes_path, latency, pair)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -208,35 +206,25 @@ def _run_logged(cmd: list[str], log: Path) -> None:
         run = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                              env=env, check=False)
     if run.returncode != 0:
+        from lerobot_robot_so101_sim.async_run import log_tail  # the package imports lerobot
+
         raise SystemExit(f"{Path(cmd[0]).name} exited with {run.returncode}; the end of "
-                         f"{log}:\n{_log_tail(log)}")
-
-
-def _log_tail(log: Path) -> str:
-    return log.read_text(encoding="utf-8", errors="replace")[-3000:]
+                         f"{log}:\n{log_tail(log)}")
 
 
 # --------------------------------------------------------------------------- async
 def _run_async(args: argparse.Namespace, policy: dict[str, Any], task: Any, out: Path,
                robot: dict[str, Any]) -> list[float]:
     """Policy server in a subprocess, RobotClient here; returns chunk latencies (s)."""
-    port = args.port or _free_port()
-    server_module = ("lerobot_robot_so101_sim.patched_server" if args.patch_diffusion else
-                     "lerobot.async_inference.policy_server")
-    serve = [sys.executable, "-m", server_module, "--host=127.0.0.1", f"--port={port}",
-             f"--fps={task.fps}"]
-    with open(out / "server.log", "w", encoding="utf-8") as log:  # cwd: its logs/ in --out
-        server = subprocess.Popen(serve, stdout=log, stderr=subprocess.STDOUT,
-                                  stdin=subprocess.DEVNULL, cwd=out)
-    try:
-        _wait_for_port(port, server)
-        return _client(args, policy, task, port, out, robot)
-    finally:
-        server.terminate()
-        try:
-            server.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            server.kill()
+    from lerobot_robot_so101_sim.async_run import AsyncRun, run_async  # imports grpc
+
+    run = AsyncRun(policy_path=policy["path"], policy_type=policy["type"], task=task,
+                   episodes=args.episodes,
+                   actions_per_chunk=args.actions_per_chunk or policy["n_action_steps"],
+                   chunk_size_threshold=args.chunk_size_threshold,
+                   aggregate_fn=args.aggregate_fn, port=args.port,
+                   patch_diffusion=args.patch_diffusion)
+    return run_async(run, out, robot)
 
 
 def _check_async(args: argparse.Namespace, policy: dict[str, Any]) -> None:
@@ -254,84 +242,9 @@ def _check_async(args: argparse.Namespace, policy: dict[str, Any]) -> None:
                          "run it with a single observation repeated over the history")
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _wait_for_port(port: int, server: subprocess.Popen, timeout: float = 120.0) -> None:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if server.poll() is not None:
-            raise SystemExit(f"the policy server exited with {server.returncode} before "
-                             "listening; see server.log in --out")
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                return
-        time.sleep(0.2)
-    raise SystemExit(f"the policy server did not listen on port {port} within {timeout:.0f} s")
-
-
-def _client(args: argparse.Namespace, policy: dict[str, Any], task: Any, port: int,
-            out: Path, robot_flags: dict[str, Any]) -> list[float]:
-    from lerobot.async_inference.configs import RobotClientConfig
-    from lerobot_robot_so101_sim import SO101SimConfig
-
-    with contextlib.chdir(out):  # importing it makes logs/ and a log file in the cwd
-        from lerobot.async_inference.robot_client import RobotClient
-
-    latencies: list[float] = []
-
-    class TimedClient(RobotClient):
-        """lerobot's client, unchanged, noting when each chunk arrives: the chunk's first
-        action carries the capture time of the observation it was computed from."""
-
-        def _aggregate_action_queues(self, incoming_actions: list, aggregate_fn: Any = None
-                                     ) -> None:
-            if incoming_actions:
-                latencies.append(time.time() - incoming_actions[0].get_timestamp())
-            super()._aggregate_action_queues(incoming_actions, aggregate_fn)
-
-    robot = SO101SimConfig(**robot_flags, episode_end="reset")
-    cfg = RobotClientConfig(
-        policy_type=policy["type"], robot=robot,  # the server's cwd is --out
-        pretrained_name_or_path=str(Path(policy["path"]).resolve()),
-        actions_per_chunk=args.actions_per_chunk or policy["n_action_steps"],
-        task=task.description, server_address=f"127.0.0.1:{port}", policy_device="cpu",
-        chunk_size_threshold=args.chunk_size_threshold, fps=task.fps,
-        aggregate_fn_name=args.aggregate_fn)
-    client = TimedClient(cfg)
-    if not client.start():  # the server raised on the policy (its traceback is in its log),
-        # or stopped listening
-        client.stop()
-        log = out / "server.log"
-        raise SystemExit(f"the policy server on port {port} did not take --policy "
-                         f"{policy['path']}; the end of {log}:\n{_log_tail(log)}")
-    threads = [threading.Thread(target=client.receive_actions, daemon=True),
-               threading.Thread(target=client.control_loop, args=(task.description,),
-                                daemon=True)]
-    for t in threads:
-        t.start()
-    print(f"agreement: {args.episodes} episodes through async inference on port {port}",
-          flush=True)
-    sim = client.robot
-    try:
-        while sum(o["ended_by"] == "env" for o in sim.outcomes) < args.episodes:
-            if not threads[1].is_alive():
-                raise SystemExit("the robot client's control loop stopped; see the log above")
-            time.sleep(0.2)
-    finally:
-        client.shutdown_event.set()
-        threads[1].join(timeout=30)
-        client.stop()
-        threads[0].join(timeout=30)
-    return latencies
-
-
 # --------------------------------------------------------------------------- report
 def _report(args: argparse.Namespace, out: Path, outcomes_path: Path,
-            latency: list[float]) -> int:
+            latency: list[float], pair: Any) -> int:
     from so101_sim.harness.stats import wilson_interval
 
     rows = [json.loads(line) for line in outcomes_path.read_text().splitlines() if line.strip()]
@@ -368,12 +281,10 @@ def _report(args: argparse.Namespace, out: Path, outcomes_path: Path,
               f"{lat['median']:.0f} ms, p90 {lat['p90']:.0f} ms, max {lat['max']:.0f} ms over "
               f"{lat['chunks']} chunks (the first, with the server's warm-up: "
               f"{lat['first_chunk']:.0f} ms)")
-    size = (f"--image-size {args.render_size[0]}x{args.render_size[1]}" if args.render_size
-            else "--faithful")  # the frames this run rendered (_robot_flags)
-    print(f"pair with: so101-sim eval --policy {args.policy} --task {args.task} --episodes "
-          f"{args.episodes} --seed-start {args.seed_start} {size}")
-    if args.pair:
-        summary["paired"] = _paired(Path(args.pair), summary["per_seed"])
+    print(f"pair with: {_eval_command(args)}")
+    if pair is not None:
+        summary["paired"] = _paired(args, out, pair, {r["seed"]: r["success"] for r in done
+                                                      if r["seed"] not in unfinished})
     (out / "agreement.json").write_text(json.dumps(summary, indent=2) + "\n")
     if unfinished:
         print(f"agreement: {len(unfinished)} episodes were still running when lerobot's episode "
@@ -381,35 +292,63 @@ def _report(args: argparse.Namespace, out: Path, outcomes_path: Path,
     return 1 if unfinished or missing else 0
 
 
-def _pair_file(eval_dir: Path) -> Path:
-    path = eval_dir / "episodes.jsonl"
-    if not path.is_file():
-        raise SystemExit(f"--pair {eval_dir}: no episodes.jsonl there; expected the --out "
-                         "folder of `so101-sim eval`")
-    return path
+def _size_flag(args: argparse.Namespace) -> str:
+    """The eval flag that renders the frames this run renders (_robot_flags)."""
+    return (f"--image-size {args.render_size[0]}x{args.render_size[1]}" if args.render_size
+            else "--faithful")
 
 
-def _paired(eval_dir: Path, ours: dict[str, bool]) -> dict[str, Any]:
-    from so101_sim.harness.stats import mcnemar_p_value, paired_difference_interval, paired_split
+def _eval_command(args: argparse.Namespace) -> str:
+    return (f"so101-sim eval --policy {args.policy} --task {args.task} --episodes "
+            f"{args.episodes} --seed-start {args.seed_start} {_size_flag(args)}")
 
-    theirs = {}
-    for line in _pair_file(eval_dir).read_text().splitlines():
-        if line.strip():
-            rec = json.loads(line)
-            if rec.get("status", "ok") == "ok":
-                theirs[int(rec["seed"])] = bool(rec["success"])
-    cells = paired_split({int(s): v for s, v in ours.items()}, theirs)
-    both, only_a, only_b, neither = (len(c) for c in cells)
-    n = both + only_a + only_b + neither
-    lo, hi = paired_difference_interval(both, only_a, only_b, neither)
-    p = mcnemar_p_value(only_a, only_b)
-    print(f"paired with {eval_dir} on {n} seeds: both {both}, only lerobot {only_a}, "
-          f"only so101-sim eval {only_b}, neither {neither}; difference "
-          f"{100 * (only_a - only_b) / max(1, n):+.1f} points (95% "
-          f"{100 * lo:+.1f} to {100 * hi:+.1f}), McNemar p = {p:.3f}")
-    return {"seeds": n, "both": both, "only_lerobot": only_a,
-            "only_so101_sim_eval": only_b, "neither": neither, "difference95": [lo, hi],
-            "mcnemar_p": p}
+
+def _pair_run(eval_dir: Path, task: Any, seeds: range, args: argparse.Namespace) -> Any:
+    """The eval folder to pair with, read as `so101-sim compare` reads one (a finished eval,
+    checked) and refused unless it ran this task (the same task file) on some of these seeds."""
+    from so101_sim.harness.compare import load_run, seed_ranges
+
+    try:
+        run = load_run(eval_dir)
+    except (FileNotFoundError, ValueError) as exc:
+        raise SystemExit(f"--pair: {exc}") from None
+    fix = f"pair with the folder of `{_eval_command(args)} --out DIR`"
+    if run.task != task.name or (run.task_sha256 and run.task_sha256 != task.sha256()):
+        other = ("" if run.task != task.name else " with other settings (its task_sha256 "
+                 f"{run.task_sha256[:12]}, this one {task.sha256()[:12]})")
+        raise SystemExit(f"--pair {eval_dir} is an eval of task {run.task!r}{other}; this run "
+                         f"is --task {args.task!r}: {fix}")
+    missing = [s for s in seeds if s not in run.success]
+    if len(missing) == len(seeds):
+        raise SystemExit(f"--pair {eval_dir} holds seeds {seed_ranges(run.success)}, none of "
+                         f"this run's {seed_ranges(seeds)}: {fix}")
+    if missing:
+        print(f"agreement: --pair {eval_dir} lacks {len(missing)} of the {len(seeds)} seeds "
+              f"({seed_ranges(missing)}); the paired table leaves them out", flush=True)
+    return run
+
+
+def _paired(args: argparse.Namespace, out: Path, run: Any, ours: dict[int, bool]
+            ) -> dict[str, Any] | None:
+    """`so101-sim compare`'s paired result and lines, lerobot's outcomes as A and the eval
+    folder's as B, on the seeds both ran."""
+    from dataclasses import replace
+
+    from so101_sim.harness.compare import RunSide, paired_result, summary_lines
+    from so101_sim.utils.versions import run_setup
+
+    shared = sorted(s for s in ours if s in run.success)
+    if not shared:
+        print(f"agreement: no seed of {args.pair} finished here; nothing to pair")
+        return None
+    tool = "lerobot-rollout" if args.mode == "rollout" else "lerobot async inference"
+    lerobot = RunSide(out, f"{tool} of {args.policy}", "", run.task, run.task_sha256,
+                      f"rendered as `so101-sim eval {_size_flag(args)}`",
+                      {s: ours[s] for s in shared}, {}, run_setup())
+    result = paired_result(lerobot, replace(run, success={s: run.success[s] for s in shared}))
+    for line in summary_lines(result):
+        print(line)
+    return result
 
 
 if __name__ == "__main__":

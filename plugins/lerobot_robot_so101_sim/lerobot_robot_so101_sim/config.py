@@ -205,6 +205,17 @@ class SO101SimConfig(RobotConfig):
                                  f"{len(seeds)} episodes dataset {data.root} holds "
                                  "(--robot.seed chooses others)")
 
+    def connect_note(self) -> str:
+        """The connect line's note on the frames' size and what the robot took from the line's
+        policy or dataset."""
+        note = "" if self.render_size == self.image_size else (
+            f" (rendered at {self.render_size[0]}x{self.render_size[1]}, resized with "
+            "so101_sim's resize_frames)")
+        if getattr(self, "sized_by", None) is not None:  # said, as the flags would have been
+            note += (f", the input size of {self.sized_by} (--robot.image_height/width and "
+                     "render_height/width choose others)")
+        return note + self.taken_note()
+
     def taken_note(self) -> str:
         """The connect line's note on what the robot took from the line's policy or dataset."""
         took = [(what, flag) for what, flag, by in (

@@ -136,8 +136,8 @@ class SO101Sim(Robot):
             self._release()
             raise
         logger.info("%s connected: task %s, cameras %s at %dx%d%s, %s", self, self.task.name,
-                    ",".join(self.camera_names), *self.config.image_size, self._render_note(),
-                    "realtime" if self.config.realtime else "not paced (realtime=false)")
+                    ",".join(self.camera_names), *cfg.image_size, cfg.connect_note(),
+                    "realtime" if cfg.realtime else "not paced (realtime=false)")
         warning = size_warning(sys.argv, self.config.image_size, self.camera_names)
         if warning:  # the policy was built apart from the robot: its frames would be wrong
             logger.warning("%s: %s", self, warning)
@@ -362,17 +362,6 @@ class SO101Sim(Robot):
             path.parent.mkdir(parents=True, exist_ok=True)
             with open(path, "a", encoding="utf-8") as f:
                 f.write(json.dumps(ep.outcome) + "\n")
-
-    def _render_note(self) -> str:
-        cfg = self.config
-        note = "" if cfg.render_size == cfg.image_size else (
-            f" (rendered at {cfg.render_size[0]}x{cfg.render_size[1]}, resized with so101_sim's "
-            "resize_frames)")
-        if getattr(cfg, "sized_by", None) is not None:  # said, as the flags would have been
-            note += (f", the input size of {cfg.sized_by} (--robot.image_height/width and "
-                     "render_height/width choose others)")
-        note += cfg.taken_note()
-        return note
 
     # ------------------------------------------------------------------ for the expert
     @property
