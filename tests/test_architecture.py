@@ -136,6 +136,22 @@ def test_a_short_top_level_and_short_modules():
     assert long == {}
 
 
+def test_public_functions_have_type_hints():
+    # every argument and the return of each public function and method, nested ones included
+    plugin = PKG.parent / "plugins" / "lerobot_robot_so101_sim" / "lerobot_robot_so101_sim"
+    bare = []
+    for path in [*PKG.rglob("*.py"), *plugin.rglob("*.py")]:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef) \
+                    or node.name.startswith("_"):
+                continue
+            args = [a for a in [*node.args.posonlyargs, *node.args.args, *node.args.kwonlyargs]
+                    if a.arg not in ("self", "cls")]
+            if node.returns is None or any(a.annotation is None for a in args):
+                bare.append(f"{path.relative_to(PKG.parent)}:{node.lineno} {node.name}")
+    assert bare == []
+
+
 def test_every_package_face_declares_all():
     faces = [p for p in PKG.rglob("__init__.py")]
     missing = [str(p.relative_to(PKG)) for p in faces if "__all__" not in p.read_text()]

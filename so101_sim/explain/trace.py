@@ -11,6 +11,7 @@ conditioning vector, where the crop was taken) it is found by comparing tensors,
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -59,7 +60,7 @@ def _build_batch(cfg: Any, item: dict[str, Any]) -> tuple[dict, dict[str, np.nda
 def _encoder_hooks(hooks: Hooks, encoder: Any, rec: dict[str, list]) -> None:
     """Per call of a DiffusionRgbEncoder: its input, the backbone's input (cropped), every
     backbone stage's output, the keypoint heatmaps, the keypoints and the feature vector."""
-    def keep(name: str, use_input: bool = False):
+    def keep(name: str, use_input: bool = False) -> Callable[..., None]:
         def hook(_m: Any, args: tuple, out: Any = None) -> None:
             rec.setdefault(name, []).append((args[0] if use_input else out).detach().clone())
         return hook

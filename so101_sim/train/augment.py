@@ -15,18 +15,22 @@ from torch's global RNG, which checkpoints save, so a resumed run is the same ru
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from so101_sim.utils.text import did_you_mean
+
+if TYPE_CHECKING:  # annotations only: lerobot's transforms load when a preset uses them
+    from lerobot.transforms import ImageTransformsConfig
 
 #: The ``[augment]`` keys a preset may set.
 AUGMENT_KEYS = ("max_num_transforms", "random_order", "tfs")
 _TF_KEYS = ("weight", "type", "kwargs")
 
 
-def transforms_config(section: dict[str, Any], where: str = "[augment]"):
+def transforms_config(section: dict[str, Any], where: str = "[augment]"
+                      ) -> ImageTransformsConfig:
     """lerobot's `ImageTransformsConfig` (enabled) from a preset's ``[augment]`` table.
 
     Raises ValueError naming the bad key or transform; the transforms are built once here so a

@@ -9,7 +9,7 @@ import math
 import shlex
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -18,6 +18,9 @@ from so101_sim.dataset.reader import read_frames
 from so101_sim.train.frame_cache import load_frames
 from so101_sim.train.presets import Preset, available_presets, load_preset
 from so101_sim.train.state import TrainError
+
+if TYPE_CHECKING:  # annotations only: lerobot loads when a dataset is opened
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -35,7 +38,7 @@ class DemoArrays:
     starts: np.ndarray                # frame indices a sample may be centred on
 
 
-def load_demos(dataset, preset: Preset, cache_dir: Path | None) -> DemoArrays:
+def load_demos(dataset: LeRobotDataset, preset: Preset, cache_dir: Path | None) -> DemoArrays:
     """Read a LeRobotDataset into `DemoArrays` for `preset` (frames resized to its image size)."""
     hf = dataset.hf_dataset.with_format("numpy")
     state = np.asarray(hf["observation.state"], dtype=np.float32)
@@ -80,7 +83,8 @@ def gather_batch(demos: DemoArrays, idx: np.ndarray, obs_offsets: list[int] | No
     return batch
 
 
-def normalization_stats(dataset, preset: Preset) -> dict[str, dict[str, torch.Tensor]]:
+def normalization_stats(dataset: LeRobotDataset, preset: Preset
+                        ) -> dict[str, dict[str, torch.Tensor]]:
     """State/action stats from the dataset; pixel mean/std per the preset."""
     stats: dict[str, dict[str, torch.Tensor]] = {}
     for key in ("observation.state", "action"):

@@ -16,12 +16,16 @@ import shutil
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import av
 import numpy as np
 from tqdm import tqdm
 
 from so101_sim.utils.image_pipeline import resize_frames
+
+if TYPE_CHECKING:  # annotations only: lerobot loads when a dataset is opened
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 _CHUNK = 256  # frames resized per call
 
@@ -51,7 +55,7 @@ def _decode_file(path: Path, size: tuple[int, int], fps: int) -> dict[int, np.nd
     return frames
 
 
-def decode_camera(dataset, camera_key: str, size: tuple[int, int]) -> np.ndarray:
+def decode_camera(dataset: LeRobotDataset, camera_key: str, size: tuple[int, int]) -> np.ndarray:
     """All frames of one camera of `dataset` (a LeRobotDataset) as uint8 [N, 3, h, w]."""
     meta = dataset.meta
     episodes = meta.episodes
@@ -94,7 +98,8 @@ def _fingerprint(dataset, size: tuple[int, int]) -> str:
     return hashlib.sha256(key.encode()).hexdigest()[:16]
 
 
-def load_frames(dataset, size: tuple[int, int], cache_dir: Path | None) -> dict[str, np.ndarray]:
+def load_frames(dataset: LeRobotDataset, size: tuple[int, int], cache_dir: Path | None
+                ) -> dict[str, np.ndarray]:
     """Resized frames for every camera, from `cache_dir` when a matching cache exists."""
     keys = list(dataset.meta.video_keys)
     if not keys:

@@ -16,10 +16,13 @@ import dataclasses
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from so101_sim.utils.paths import policy_dir
 from so101_sim.utils.text import did_you_mean
+
+if TYPE_CHECKING:  # annotations only: presets load without lerobot
+    from lerobot.configs.policies import PreTrainedConfig
 
 # Fields that describe where a config came from or goes to, not the model.
 NOT_IN_PRESET = frozenset({"input_features", "output_features", "repo_id", "private", "tags",
@@ -204,7 +207,8 @@ def load_preset(name_or_path: str | Path) -> Preset:
                   augment=augment)
 
 
-def make_config(preset: Preset, input_features: dict, output_features: dict):
+def make_config(preset: Preset, input_features: dict, output_features: dict
+                ) -> PreTrainedConfig:
     """Build the preset's lerobot config (`DiffusionConfig`, `ACTConfig`) for these features."""
     return config_class(preset.policy_type)(input_features=input_features,
                                             output_features=output_features, **preset.policy)

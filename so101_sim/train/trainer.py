@@ -274,7 +274,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
               f"{weighting.factor:g}x as often, they are {probs[near].sum():.0%} of each batch")
     stop = {"signal": None}
 
-    def on_signal(signum, _frame):
+    def on_signal(signum: int, _frame: object) -> None:
         stop["signal"] = signum
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}

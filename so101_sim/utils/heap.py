@@ -13,6 +13,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import sys
+from collections.abc import Callable
 
 __all__ = ["keep_freed_memory"]
 
@@ -25,7 +26,7 @@ _TRIM_THRESHOLD = 1 << 30
 _done: bool | None = None
 
 
-def keep_freed_memory(log=print) -> bool:
+def keep_freed_memory(log: Callable[[str], None] = print) -> bool:
     """Raise glibc's mmap and trim thresholds for this process (once); False off glibc.
 
     Off glibc (macOS, musl) nothing changes and ``log`` gets one line saying so.
