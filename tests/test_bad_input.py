@@ -81,6 +81,19 @@ def test_non_utf8_task_file_is_named(tmp_path: Path) -> None:
         load_task(path)
 
 
+def test_record_of_a_task_at_another_fps_says_what_to_change(tmp_path: Path) -> None:
+    # the message named neither the task file nor the fix; and nothing is written
+    path = tmp_path / "t15.toml"
+    text = TASK.read_text()
+    assert "\nfps = 30 " in text
+    path.write_text(text.replace("\nfps = 30 ", "\nfps = 15 "))
+    r = _cli("record", "--task", str(path), "--episodes", "1", "--out", str(tmp_path / "d"))
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert f"--task {path}: its fps is 15; expected 30" in r.stderr, r.stderr
+    assert "set fps = 30 in the task file" in r.stderr, r.stderr
+    assert not (tmp_path / "d").exists()
+
+
 def _cli(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
     exe = Path(sys.executable).parent / "so101-sim"
     return subprocess.run([str(exe), *args], capture_output=True, text=True, timeout=300,

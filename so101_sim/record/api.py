@@ -145,7 +145,9 @@ def record(out_dir: str | Path, n_episodes: int, task: str | Path | None = None,
         image_size = (int(image_size[0]), int(image_size[1]))
         spec = load_task(task_arg)
         if spec.fps != 30:
-            raise ValueError(f"task fps is {spec.fps}; the dataset is recorded at 30 fps")
+            raise ValueError(f"--task {task_arg}: its fps is {spec.fps}; expected 30, the only "
+                             "rate so101-sim record writes (the SO-101 datasets' rate): set "
+                             "fps = 30 in the task file")
         cams = check_cameras(spec.cameras if cameras is None else cameras)
         if backend == "local":  # the workers' fork server imports torch on the other core
             # while open_dataset imports lerobot here (they took turns: ~6 s each)
