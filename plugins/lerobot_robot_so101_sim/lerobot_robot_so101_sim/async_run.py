@@ -12,22 +12,27 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 __all__ = ["AsyncRun", "log_tail", "run_async"]
 
 
+@dataclass(frozen=True, kw_only=True)
 class AsyncRun:
-    """What one run needs besides the robot's config fields (``robot_flags``)."""
+    """What one run needs besides the robot's config fields (``robot_flags``): lerobot's
+    ``RobotClientConfig`` values, the task (its fps and description) and when to stop."""
 
-    def __init__(self, *, policy_path: str | Path, policy_type: str, task: Any, episodes: int,
-                 actions_per_chunk: int, chunk_size_threshold: float, aggregate_fn: str,
-                 port: int = 0, patch_diffusion: bool = False) -> None:
-        self.policy_path, self.policy_type, self.task = Path(policy_path), policy_type, task
-        self.episodes, self.actions_per_chunk = episodes, actions_per_chunk
-        self.chunk_size_threshold, self.aggregate_fn = chunk_size_threshold, aggregate_fn
-        self.port, self.patch_diffusion = port, patch_diffusion
+    policy_path: Path
+    policy_type: str
+    task: Any  # a so101_sim TaskSpec
+    episodes: int
+    actions_per_chunk: int
+    chunk_size_threshold: float
+    aggregate_fn: str
+    port: int = 0  # 0: a free one
+    patch_diffusion: bool = False  # serve with lerobot_robot_so101_sim.patched_server
 
 
 def log_tail(log: Path) -> str:
@@ -100,7 +105,7 @@ def _client(run: AsyncRun, port: int, out: Path, robot_flags: dict[str, Any]) ->
     robot = SO101SimConfig(**robot_flags, episode_end="reset")
     cfg = RobotClientConfig(
         policy_type=run.policy_type, robot=robot,  # the server's cwd is out
-        pretrained_name_or_path=str(run.policy_path.resolve()),
+        pretrained_name_or_path=str(Path(run.policy_path).resolve()),
         actions_per_chunk=run.actions_per_chunk, task=run.task.description,
         server_address=f"127.0.0.1:{port}", policy_device="cpu",
         chunk_size_threshold=run.chunk_size_threshold, fps=run.task.fps,
