@@ -614,7 +614,7 @@ def test_agreement_pairs_seeds_with_an_eval_folder(tmp_path, capsys):
                                                13: False}, sha=load_task("pick_place").sha256())
     args = agreement._parser().parse_args(["rollout", "--seed-start", "10", "--episodes", "5",
                                            "--pair", str(evald)])
-    pair = agreement._pair_run(evald, load_task("pick_place"), range(10, 15), args)
+    pair = agreement._pair_run(evald, load_task("pick_place"), args)
     out = tmp_path / "out"
     out.mkdir()
     rows = [_outcome(10, True), _outcome(11, False), _outcome(12, True), _outcome(13, False),

@@ -49,9 +49,8 @@ LEROBOT_ISSUE = "https://github.com/huggingface/lerobot/issues/3861"
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     task = _task(args.task)
-    seeds = range(args.seed_start, args.seed_start + args.episodes)
     # used only at the end, read now: a wrong folder found then cost the whole run
-    pair = _pair_run(Path(args.pair), task, seeds, args) if args.pair else None
+    pair = _pair_run(Path(args.pair), task, args) if args.pair else None
     out = Path(args.out or f"outputs/agreement/{args.mode}")
     if (blocking := file_in_the_way(out)) is not None:  # mkdir raised FileExistsError or
         # NotADirectoryError
@@ -303,7 +302,7 @@ def _eval_command(args: argparse.Namespace) -> str:
             f"{args.episodes} --seed-start {args.seed_start} {_size_flag(args)}")
 
 
-def _pair_run(eval_dir: Path, task: Any, seeds: range, args: argparse.Namespace) -> Any:
+def _pair_run(eval_dir: Path, task: Any, args: argparse.Namespace) -> Any:
     """The eval folder to pair with, read as `so101-sim compare` reads one (a finished eval,
     checked) and refused unless it ran this task (the same task file) on some of these seeds."""
     from so101_sim.harness.compare import load_run, seed_ranges
@@ -318,6 +317,7 @@ def _pair_run(eval_dir: Path, task: Any, seeds: range, args: argparse.Namespace)
                  f"{run.task_sha256[:12]}, this one {task.sha256()[:12]})")
         raise SystemExit(f"--pair {eval_dir} is an eval of task {run.task!r}{other}; this run "
                          f"is --task {args.task!r}: {fix}")
+    seeds = range(args.seed_start, args.seed_start + args.episodes)
     missing = [s for s in seeds if s not in run.success]
     if len(missing) == len(seeds):
         raise SystemExit(f"--pair {eval_dir} holds seeds {seed_ranges(run.success)}, none of "
