@@ -249,7 +249,7 @@ def _report(args: argparse.Namespace, out: Path, outcomes_path: Path,
     rows = [json.loads(line) for line in outcomes_path.read_text().splitlines() if line.strip()]
     rows = [r for r in rows if not r["discarded"] and r["ended_by"] != "disconnect"]
     by_seed = {r["seed"]: r for r in rows}
-    seeds = range(args.seed_start, args.seed_start + args.episodes)
+    seeds = _seeds(args)
     missing = [s for s in seeds if s not in by_seed]
     for s in seeds:
         r = by_seed.get(s)
@@ -291,6 +291,11 @@ def _report(args: argparse.Namespace, out: Path, outcomes_path: Path,
     return 1 if unfinished or missing else 0
 
 
+def _seeds(args: argparse.Namespace) -> range:
+    """The seeds this run covers: S..S+N-1."""
+    return range(args.seed_start, args.seed_start + args.episodes)
+
+
 def _size_flag(args: argparse.Namespace) -> str:
     """The eval flag that renders the frames this run renders (_robot_flags)."""
     return (f"--image-size {args.render_size[0]}x{args.render_size[1]}" if args.render_size
@@ -317,7 +322,7 @@ def _pair_run(eval_dir: Path, task: Any, args: argparse.Namespace) -> Any:
                  f"{run.task_sha256[:12]}, this one {task.sha256()[:12]})")
         raise SystemExit(f"--pair {eval_dir} is an eval of task {run.task!r}{other}; this run "
                          f"is --task {args.task!r}: {fix}")
-    seeds = range(args.seed_start, args.seed_start + args.episodes)
+    seeds = _seeds(args)
     missing = [s for s in seeds if s not in run.success]
     if len(missing) == len(seeds):
         raise SystemExit(f"--pair {eval_dir} holds seeds {seed_ranges(run.success)}, none of "

@@ -105,7 +105,7 @@ def _client(run: AsyncRun, port: int, out: Path, robot_flags: dict[str, Any]) ->
     robot = SO101SimConfig(**robot_flags, episode_end="reset")
     cfg = RobotClientConfig(
         policy_type=run.policy_type, robot=robot,  # the server's cwd is out
-        pretrained_name_or_path=str(Path(run.policy_path).resolve()),
+        pretrained_name_or_path=str(run.policy_path.resolve()),
         actions_per_chunk=run.actions_per_chunk, task=run.task.description,
         server_address=f"127.0.0.1:{port}", policy_device="cpu",
         chunk_size_threshold=run.chunk_size_threshold, fps=run.task.fps,
