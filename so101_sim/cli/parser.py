@@ -17,6 +17,7 @@ from so101_sim.cli.arg_types import (
     parse_steps,
     positive_int,
 )
+from so101_sim.cli.lerobot_flags import rewrite_lerobot_flags
 from so101_sim.cli.version import ShowVersion
 
 
@@ -63,12 +64,16 @@ def parse_command_line(argv: list[str] | None) -> argparse.Namespace:
 
 
 def unrecognized(command: argparse.ArgumentParser, words: list[str], extras: list[str]) -> str:
-    """The error for `extras`, with what helps most: for a positional given as a flag, the
-    command line without the flag; else the flag nearest a misspelt one; else --help."""
+    """The error for `extras`, with what helps most: for lerobot's flags, the command line in
+    this command's spelling; for a positional given as a flag, the command line without the
+    flag; else the flag nearest a misspelt one; else --help."""
     name = words[0]
     message = f"unrecognized arguments: {' '.join(extras)}; "
     positionals = {a.dest for a in command._actions if not a.option_strings}
     flags = [s for a in command._actions for s in a.option_strings if s.startswith("--")]
+    rewritten = rewrite_lerobot_flags(words, extras)
+    if rewritten is not None:  # before spelling, which takes --policy.path for --policy-batch
+        return f"{message}so101-sim {name} spells them: {rewritten}"
     for extra in extras:
         flag, _, value = extra.partition("=")
         dest = flag.removeprefix("--").replace("-", "_")
