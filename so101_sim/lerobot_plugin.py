@@ -251,6 +251,11 @@ class SO101PickPlaceEnvConfig(EnvConfig):
             raise ValueError(f"n_envs={n_envs} is invalid; expected at least 1")
         cameras = [k.split("/", 1)[1] for k in self.features if k.startswith("pixels/")]
         self._check_inputs(cameras)
+        if cameras or self.render_mode is not None:  # a GL backend that cannot work: one line
+            from so101_sim.sim.rendering import select_gl_backend
+
+            with config_errors(f"--env.type={ENV_TYPE}", (RuntimeError,)):
+                select_gl_backend()  # chosen once here: the env workers inherit MUJOCO_GL
         if took := getattr(self, "_policy_took", None):
             self._say_once(logging.INFO, f"{', '.join(took)}, as {self._policy} was trained on "
                            "(lerobot-eval hands the policy the frames as they are; --env.task, "

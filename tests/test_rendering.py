@@ -33,6 +33,68 @@ def test_invalid_mujoco_gl_is_a_clear_error(monkeypatch):
         select_gl_backend()
 
 
+def _glfw_without_a_display(monkeypatch) -> None:
+    monkeypatch.setenv("MUJOCO_GL", "glfw")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")
+
+
+def test_glfw_without_a_display_is_one_line_before_any_context(monkeypatch, tmp_path):
+    """MUJOCO_GL=glfw over SSH: GLFW warned twice and MuJoCo stopped in MjrContext with "an
+    OpenGL platform library has not been loaded", under a traceback; lerobot-eval and the
+    lerobot robot the same, from their env workers or connect()."""
+    from lerobot_robot_so101_sim import SO101Sim, SO101SimConfig
+
+    from so101_sim.lerobot_plugin import ENV_TYPE, SO101PickPlaceEnvConfig
+    from so101_sim.utils.lerobot_cli import TAG
+
+    _glfw_without_a_display(monkeypatch)
+    hint = r"MUJOCO_GL='glfw' needs a display and DISPLAY is not set here; .*MUJOCO_GL=egl"
+    with pytest.raises(RuntimeError, match=hint):
+        select_gl_backend()
+    with pytest.raises(RuntimeError, match=hint) as caught:  # lerobot-eval: before the envs
+        SO101PickPlaceEnvConfig(image_height=48, image_width=64).create_envs(1)
+    assert getattr(caught.value, TAG) == f"--env.type={ENV_TYPE}"  # its one line
+    robot = SO101Sim(SO101SimConfig(image_height=48, image_width=64, realtime=False,
+                                    calibration_dir=tmp_path / "cal"))
+    with pytest.raises(RuntimeError, match=hint) as caught:
+        robot.connect()
+    assert getattr(caught.value, TAG) == "--robot.type=so101_sim"
+    assert not robot.is_connected
+    monkeypatch.setenv("DISPLAY", ":0")  # a display named: glfw is tried, not refused
+    assert select_gl_backend() == "glfw"
+
+
+def test_eval_says_glfw_needs_a_display_on_a_line_of_its_own(tmp_path):
+    """The line came after eval's progress bar, on the bar's line."""
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    r = subprocess.run([sys.executable, "-m", "so101_sim", "eval", "--policy", "expert",
+                        "--episodes", "1", "--videos", "1", "--out", str(tmp_path / "e")],
+                       env={**env, "MUJOCO_GL": "glfw", "HF_HUB_OFFLINE": "1"},
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert any(line.startswith("so101-sim eval: error: MUJOCO_GL='glfw' needs a display and "
+                               "DISPLAY is not set") for line in r.stderr.split("\n"))
+    assert "ep/s]" not in r.stderr  # no bar was started
+
+
+def test_a_gl_context_that_fails_is_one_line(tmp_path):
+    """MUJOCO_GL=glfw with a DISPLAY that cannot be opened: MuJoCo's FatalError from
+    MjrContext becomes one line with the headless backends."""
+    env = {**os.environ, "MUJOCO_GL": "glfw", "DISPLAY": ":4242", "HF_HUB_OFFLINE": "1"}
+    env.pop("PYOPENGL_PLATFORM", None)
+    r = subprocess.run([sys.executable, "-m", "so101_sim", "demo", "--steps", "1", "--out",
+                        str(tmp_path / "demo")], env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("so101-sim demo: error: MUJOCO_GL='glfw' gave no OpenGL context (")
+    assert last.endswith("set MUJOCO_GL=egl or MUJOCO_GL=osmesa, or unset it (so101_sim then "
+                         "picks one)")
+
+
 def test_missing_meshes_fall_back_to_primitive_visuals(monkeypatch, capsys):
     monkeypatch.setattr(scene.meshes, "find_mesh_dir", lambda: None)
     task = dataclasses.replace(load_task(), mesh_grid=0.0123)  # a fresh build_model cache key

@@ -271,13 +271,13 @@ def _run(policy: EvalPolicy, run: RunDir, task: TaskSpec, rendering: Rendering, 
         log(f"so101-sim eval: {counted(n_envs, 'env')} {fill} at most {n_envs} of each "
             f"{pad_to}-row policy forward, the rest is padding (actions per seed stay those "
             f"of any --n-envs); --n-envs {pad_to} or more puts those rows to use")
-    bar = tqdm(total=episodes, initial=len(done), unit="ep", disable=not progress,
-               dynamic_ncols=True)
-    n_run = 0
     if info.cameras or videos or sink is not None:
         from so101_sim.sim.rendering import select_gl_backend
 
         select_gl_backend()  # choose (and print) once here: workers inherit MUJOCO_GL
+    bar = tqdm(total=episodes, initial=len(done), unit="ep", disable=not progress,
+               dynamic_ncols=True)
+    n_run = 0
     preload = worker_preload(resize=cfg.resize_to is not None, rollouts=sink is not None,
                              videos=videos > 0)
     n_workers = min(n_envs, len(todo))

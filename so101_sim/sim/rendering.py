@@ -19,6 +19,9 @@ import numpy as np
 from so101_sim.sim.glcheck import mujoco
 from so101_sim.sim.rendering_probe import BACKENDS, probe_backend
 
+HEADLESS_HINT = ("for headless rendering set MUJOCO_GL=egl or MUJOCO_GL=osmesa, or unset it "
+                 "(so101_sim then picks one)")
+
 # Geom group of the collision primitives in assets/so101.xml (the meshes are group 2): drawn
 # only when no visual mesh is found.
 COLLISION_GROUP = 3
@@ -35,6 +38,11 @@ def select_gl_backend() -> str:
         if chosen not in (*BACKENDS, "glfw"):
             raise RuntimeError(f"MUJOCO_GL={chosen!r} is not supported by so101_sim; expected "
                                "'egl' or 'osmesa' (headless) or 'glfw' (needs a display)")
+        if (chosen == "glfw" and sys.platform.startswith("linux")
+                and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))):
+            # else GLFW warns twice and MuJoCo fails later with "no OpenGL platform library"
+            raise RuntimeError(f"MUJOCO_GL='glfw' needs a display and DISPLAY is not set here; "
+                               f"{HEADLESS_HINT}")
         return chosen
     errors = {}
     for backend in BACKENDS:
@@ -95,10 +103,14 @@ class MultiCameraRenderer:
         model.vis.global_.offwidth = max(model.vis.global_.offwidth, total_w)
         model.vis.global_.offheight = max(model.vis.global_.offheight, height)
         self._model = model
-        self._gl = _gl_context_class(self.backend)(total_w, height)
-        _register_atexit()
-        self._gl.make_current()
-        self._con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_50)
+        try:
+            self._gl = _gl_context_class(self.backend)(total_w, height)
+            _register_atexit()
+            self._gl.make_current()
+            self._con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_50)
+        except mujoco.FatalError as exc:  # e.g. glfw with a DISPLAY that cannot be opened
+            raise RuntimeError(f"MUJOCO_GL={self.backend!r} gave no OpenGL context ({exc}); "
+                               f"{HEADLESS_HINT}") from None
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._con)
         self._scene = mujoco.MjvScene(model, maxgeom=256)
         self._scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = shadows

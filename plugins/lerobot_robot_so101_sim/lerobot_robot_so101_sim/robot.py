@@ -37,6 +37,7 @@ from lerobot_robot_so101_sim.dataset_events import (
 )
 from so101_sim.policy_frames import refuse_or_warn, robot_input_problem, size_warning
 from so101_sim.tasks import load_task
+from so101_sim.utils.lerobot_cli import config_errors
 from so101_sim.utils.text import counted
 from so101_sim.utils.units import FEATURE_NAMES
 
@@ -120,6 +121,11 @@ class SO101Sim(Robot):
         if self.is_connected:
             raise DeviceAlreadyConnectedError(f"{self} is already connected")
         self._check_inputs()
+        if self.camera_names:  # a GL backend that cannot work: one line, before the scene
+            from so101_sim.sim.rendering import select_gl_backend
+
+            with config_errors(f"--robot.type={ROBOT_TYPE}", (RuntimeError,)):
+                select_gl_backend()
         registry.add(self)
         try:
             from so101_sim.sim import SO101Env
