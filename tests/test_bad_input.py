@@ -295,6 +295,27 @@ def test_an_unknown_argument_is_named_under_its_commands_usage(argv: list[str], 
     assert hint in err
 
 
+@pytest.mark.parametrize(("argv", "line"), [
+    (["eval", "--policy", "expert", "--out", ""],
+     "argument --out: '' is empty; expected a value (an unset shell variable expands to ''); "
+     "or leave --out out for its default"),
+    (["train", "--dataset", "d", "--out", ""], "argument --out: '' is empty; expected a value "
+                                               "(an unset shell variable expands to '')"),
+    (["demo", "--out="], "argument --out: '' is empty"),
+    (["curve", ""], "argument RUN: '' is empty"),
+    (["export", "c", "--eval", "e", "--eval", ""], "argument --eval: '' is empty"),
+])
+def test_an_empty_value_is_refused_by_name(argv: list[str], line: str, capsys) -> None:
+    """`--out "$OUT"` with OUT unset: eval, train and demo wrote into the current folder (an
+    empty path is '.'), beside whatever was there; explain took its default."""
+    from so101_sim.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert f"so101-sim {argv[0]}: error: {line}" in capsys.readouterr().err
+
+
 def test_a_curve_refuses_training_seeds_by_its_flag(capsys) -> None:
     """curve has no --allow-train-seeds: the library's hint to pass it was wrong there."""
     from so101_sim.cli import main

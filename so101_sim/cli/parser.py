@@ -57,9 +57,17 @@ def parse_command_line(argv: list[str] | None) -> argparse.Namespace:
         if unknown:
             command.error(unrecognized(command, words, unknown))
     args, extras = parser.parse_known_args(words)
+    command = commands_by_name[args.command]
     if extras:
-        command = commands_by_name[args.command]
         command.error(unrecognized(command, [args.command, *words[1:]], extras))
+    for action in command._actions:  # `--out "$OUT"` with OUT unset: eval wrote into the cwd
+        value = getattr(args, action.dest, None)
+        if value == "" or (isinstance(value, list) and "" in value):
+            name = action.option_strings[-1] if action.option_strings else action.dest.upper()
+            default = "" if action.required or not action.option_strings else (
+                f"; or leave {name} out for its default")
+            command.error(f"argument {name}: '' is empty; expected a value (an unset shell "
+                          f"variable expands to ''){default}")
     return args
 
 
