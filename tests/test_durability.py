@@ -157,6 +157,22 @@ def test_torn_last_line_of_episodes_jsonl_is_dropped(tmp_path: Path) -> None:
     assert sorted(run.done()) == [1, 2, 3, 4]
 
 
+def test_a_resume_whose_fingerprint_alone_differs_names_the_flags_it_hashes(tmp_path) -> None:
+    """`eval --resume --n-action-steps 4` over an 8-step run said only that two hashes
+    differ; the flags that change a fingerprint with the same checkpoint are now named."""
+    run = RunDir(tmp_path / "run")
+    first = {"policy": "p", "policy_fingerprint": "aaaa", "seed_start": 100000}
+    run.prepare(first, resume=False)
+    with pytest.raises(ValueError) as caught:
+        run.prepare({**first, "policy_fingerprint": "bbbb"}, resume=True)
+    assert ("policy_fingerprint: 'aaaa' there, 'bbbb' now (the same checkpoint name with other "
+            "weights, or other inference flags: --n-action-steps, ") in str(caught.value)
+    with pytest.raises(ValueError) as caught:  # another policy as well: its name says it
+        run.prepare({**first, "policy": "q", "policy_fingerprint": "bbbb"}, resume=True)
+    assert "inference flags" not in str(caught.value)
+    assert "policy: 'p' there, 'q' now; policy_fingerprint" in str(caught.value)
+
+
 def test_resume_after_a_kill_before_the_dataset_existed(tmp_path: Path) -> None:
     """Killed inside LeRobotDataset.create: only an empty meta/ is there; --resume starts."""
     root = tmp_path / "ds"

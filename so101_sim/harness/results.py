@@ -93,6 +93,8 @@ class RunDir:
                                  ) from None
             diff = [f"{k}: {old.get(k)!r} there, {v!r} now" for k, v in identity.items()
                     if old.get(k) != v and not _grows(k, old.get(k), v, may_grow)]
+            if len(diff) == 1 and diff[0].startswith("policy_fingerprint:"):
+                diff[0] += f" ({SAME_NAME_OTHER_POLICY})"
             if diff:
                 raise ValueError(f"cannot resume {self.path}: it holds a different evaluation ("
                                  + "; ".join(diff) + "); use the same arguments as that run, "
@@ -155,6 +157,12 @@ class RunDir:
 
     def write_info(self, info: dict[str, Any]) -> None:
         write_json_atomic(self.info_path, info)
+
+
+SAME_NAME_OTHER_POLICY = ("the same checkpoint name with other weights, or other inference "
+                          "flags: --n-action-steps, --inference-steps, --noise-scheduler, "
+                          "--temporal-ensemble, --precision, --policy-batch, --camera-map")
+"""What a fingerprint alone differing means: it hashes the weights and these settings."""
 
 
 def _grows(key: str, old: Any, new: Any, may_grow: tuple[str, ...]) -> bool:
