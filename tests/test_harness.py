@@ -351,6 +351,22 @@ def test_policy_threads_default_to_half_the_cores_and_are_restored(short, tmp_pa
         assert torch.get_num_threads() == before  # the caller's setting comes back
 
 
+def test_more_policy_threads_than_cores_get_one_line(short, tmp_path, monkeypatch):
+    """`eval --threads N` above the cores: kept as asked, with the line that says the cost."""
+    from so101_sim.utils import devices
+
+    monkeypatch.setattr(devices, "cpu_count", lambda: 1)
+    said: list[str] = []
+    policy = _CountThreads()
+    evaluate(policy, task=str(short), episodes=2, n_envs=2, videos=0, report=False,
+             out_dir=tmp_path / "run", threads=2, progress=False, log=said.append)
+    assert policy.threads == {2}
+    assert [s for s in said if "--threads" in s] == [
+        "so101-sim eval: note: --threads 2 is more than the 1 CPU core this process can use, so "
+        "torch's threads wait on each other (a training step took 34x as long with 8 threads on "
+        "2 cores); --threads 1 or fewer, or leave it out"]
+
+
 def test_policy_error_is_retried_then_reported(short, tmp_path):
     with pytest.raises(RuntimeError, match=r"(?s)seed 100001 failed 3 times.*NaN"):
         evaluate(_HoldStill(bad_seed=100001), task=str(short), episodes=3, n_envs=2,

@@ -287,6 +287,22 @@ def test_busy_machine_steps_in_parts(dataset: Path, tiny: Path, tmp_path: Path,
     assert any(not torch.equal(a[k], b[k]) for k in a)  # it trained, with its own draws
 
 
+def test_more_threads_than_cores_get_one_line(dataset: Path, tiny: Path, tmp_path: Path,
+                                              monkeypatch, capsys) -> None:
+    """`train --threads 8` on 2 cores took 34x as long a step as `--threads 2`, unsaid. Kept
+    as asked (a fixed count is what repeats bitwise elsewhere), with one line."""
+    from so101_sim.utils import devices
+
+    monkeypatch.setattr(devices, "cpu_count", lambda: 1)  # 2 threads: over, yet cheap here
+    train(dataset, tmp_path / "r", preset_name=str(tiny), steps=1, progress=False, threads=2)
+    out = capsys.readouterr().out
+    assert out.count("so101-sim train: note: --threads 2 is more than the 1 CPU core this "
+                     "process can use") == 1
+    assert "--threads 1 or fewer, or leave it out" in out
+    train(dataset, tmp_path / "s", preset_name=str(tiny), steps=1, progress=False, threads=1)
+    assert "--threads" not in capsys.readouterr().out
+
+
 def test_bf16_precision_trains_and_is_recorded(dataset: Path, tiny: Path, tmp_path: Path) -> None:
     """bf16 autocast gives a finite loss and fp32 weights; switching on --resume is recorded."""
     train(dataset, tmp_path / "r", preset_name=str(tiny), steps=2, progress=False)

@@ -175,7 +175,7 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = DEFAULT_
         own.install()
     try:
         if todo:
-            with torch_threads(threads or eval_policy_threads()):
+            with torch_threads(eval_policy_threads(threads, log)):
                 n_run, workers, forwards_seen = _run(
                     policy, run, spec, rendering, todo, done, seed_start, episodes, n_envs,
                     videos, worker_timeout_s, max_retries, progress, backend, ray_address,

@@ -66,7 +66,7 @@ from so101_sim.train.state import (
     truncate_log,
 )
 from so101_sim.train.threads import AdaptiveThreads, BatchParts
-from so101_sim.utils.devices import resolve_device, resolve_precision, slow_bf16_note
+from so101_sim.utils.devices import resolve_device, resolve_precision, slow_bf16_note, threads_note
 from so101_sim.utils.locks import hold_folder, lock_scope
 from so101_sim.utils.paths import foreign_folder
 from so101_sim.utils.versions import run_setup
@@ -308,6 +308,8 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
 
     if threads:
         torch.set_num_threads(threads)
+        if device == "cpu" and (note := threads_note(threads, "train")):
+            print(note)
     tuner = AdaptiveThreads() if device == "cpu" and not threads else None
     run_parts, augment = BatchParts(), FrameAugmenter(preset.augment) if preset.augment else dict
 
