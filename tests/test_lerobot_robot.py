@@ -14,11 +14,13 @@ import socket
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from lerobot.robots.config import RobotConfig
 
 sys.path.insert(0, str(Path(__file__).parent))
 from eval_folders import write_eval_run
@@ -217,6 +219,37 @@ def test_bad_config_values_are_named(tmp_path):
         with pytest.raises(ValueError, match=match) as caught:
             SO101SimConfig(calibration_dir=tmp_path, **bad)
         assert getattr(caught.value, TAG) == "--robot.type=so101_sim"
+
+
+@dataclass
+class _Command:  # as lerobot-record's config holds its robot
+    robot: RobotConfig
+
+
+def test_a_real_arms_cameras_flag_gets_the_sims_flags(tmp_path):
+    """A real SO-101's command line with `--robot.type=so101_sim` in it kept its
+    `--robot.cameras='{laptop: {type: opencv, ...}}'` and got draccus's "The fields `cameras`
+    are not valid for SO101SimConfig"; now the line names the flags that choose the sim's."""
+    import draccus
+    from lerobot.cameras.opencv import OpenCVCameraConfig
+
+    from so101_sim.utils.lerobot_cli import TAG
+
+    real = {"laptop": OpenCVCameraConfig(index_or_path=0, fps=30, width=640, height=480),
+            "wrist": OpenCVCameraConfig(index_or_path=1)}  # no fps: the base class's error
+    with pytest.raises(ValueError) as caught:
+        SO101SimConfig(cameras=real, calibration_dir=tmp_path)
+    assert str(caught.value) == (
+        "--robot.cameras configures real cameras (laptop, wrist); the sim renders its own: pass "
+        "--robot.camera_names='[wrist]' (from front, side, wrist) and --robot.image_height / "
+        "--robot.image_width for their size")
+    assert getattr(caught.value, TAG) == "--robot.type=so101_sim"
+
+    with pytest.raises(draccus.utils.ParsingError) as parsed:
+        draccus.parse(_Command, args=["--robot.type=so101_sim", "--robot.cameras={laptop: "
+                                     "{type: opencv, index_or_path: 0, fps: 30}}"])
+    assert "configures real cameras (laptop)" in str(parsed.value.__cause__)
+    assert SO101SimConfig(calibration_dir=tmp_path).cameras == {}  # unset: nothing to say
 
 
 def test_a_policy_that_takes_other_frames_is_named_at_connect(tmp_path, monkeypatch, caplog):

@@ -12,6 +12,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from lerobot.cameras import CameraConfig
 from lerobot.robots.config import RobotConfig
 from lerobot.teleoperators.config import TeleoperatorConfig
 from lerobot.utils.constants import HF_LEROBOT_HOME
@@ -88,10 +89,21 @@ class SO101SimConfig(RobotConfig):
     # which serves a Diffusion Policy; false: the client asking for one is refused at connect,
     # since lerobot's own server fails its every chunk (lerobot issue #3861).
     patched_server: bool = False
+    # Not read: the sim renders its own cameras (camera_names). Declared so that a real
+    # SO-101's `--robot.cameras='{laptop: {type: opencv, ...}}'` gets the flags to use instead
+    # of draccus's "The fields `cameras` are not valid for SO101SimConfig".
+    cameras: dict[str, CameraConfig] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        super().__post_init__()
         with config_errors(f"--robot.type={ROBOT_TYPE}"):  # a lerobot command: one line
+            if self.cameras:  # before the base class asks each real camera for its fps
+                named = [c for c in self.cameras if c in ALL_CAMERAS] or ["front", "side"]
+                raise ValueError(
+                    f"--robot.cameras configures real cameras ({', '.join(self.cameras)}); the "
+                    f"sim renders its own: pass --robot.camera_names='[{','.join(named)}]' "
+                    f"(from {', '.join(ALL_CAMERAS)}) and --robot.image_height / "
+                    "--robot.image_width for their size")
+            super().__post_init__()
             self._check()
 
     def _check(self) -> None:
