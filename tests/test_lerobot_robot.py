@@ -252,6 +252,17 @@ def test_a_real_arms_cameras_flag_gets_the_sims_flags(tmp_path):
     assert SO101SimConfig(calibration_dir=tmp_path).cameras == {}  # unset: nothing to say
 
 
+def test_a_real_arms_port_is_taken_with_one_line(tmp_path, capsys):
+    """`--robot.port` (the real arm requires it) stopped the command at draccus's "fields
+    `port` are not valid"; the command runs, saying the port is not used."""
+    SO101SimConfig(port="/dev/ttyACM0", calibration_dir=tmp_path)
+    assert capsys.readouterr().err.splitlines() == [
+        "INFO --robot.type=so101_sim: --robot.port=/dev/ttyACM0 is not used (the sim has no "
+        "motor bus)"]
+    SO101SimConfig(calibration_dir=tmp_path)
+    assert capsys.readouterr().err == ""
+
+
 def test_a_policy_that_takes_other_frames_is_named_at_connect(tmp_path, monkeypatch, caplog):
     """`lerobot-rollout --policy.path=policy/pick_place_diffusion --robot.type=so101_sim`
     with image flags other than its 60x80 feeds it frames it centre-crops to 54x72: every

@@ -93,6 +93,9 @@ class SO101SimConfig(RobotConfig):
     # SO-101's `--robot.cameras='{laptop: {type: opencv, ...}}'` gets the flags to use instead
     # of draccus's "The fields `cameras` are not valid for SO101SimConfig".
     cameras: dict[str, CameraConfig] = field(default_factory=dict)
+    # Not read: the real arm's serial port (a field it requires), so that its command line
+    # runs with only --robot.type changed; one line says it is not used.
+    port: str | None = None
 
     def __post_init__(self) -> None:
         with config_errors(f"--robot.type={ROBOT_TYPE}"):  # a lerobot command: one line
@@ -105,6 +108,9 @@ class SO101SimConfig(RobotConfig):
                     "--robot.image_width for their size")
             super().__post_init__()
             self._check()
+        if self.port:
+            say(__name__, logging.INFO, f"--robot.type={ROBOT_TYPE}: --robot.port={self.port} is "
+                "not used (the sim has no motor bus)")
 
     def _check(self) -> None:
         self.task_by: Path | None = None  # the policy whose demos' task the robot took
