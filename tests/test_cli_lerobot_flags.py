@@ -15,7 +15,10 @@ def test_every_mapped_flag_is_a_flag_of_its_command() -> None:
     _, commands = build_parsers()
     for name, mapping in LEROBOT_FLAGS.items():
         flags = {s for a in commands[name]._actions for s in a.option_strings}
-        assert {new for new in mapping.values() if new is not None} <= flags, name
+        assert {new for new in mapping.values() if new} <= flags, name
+        if "" in mapping.values():  # the value alone: the command takes a positional
+            assert any(not a.option_strings for a in commands[name]._actions
+                       if a.dest != "help"), name
         assert not set(mapping) & flags, name  # a mapped spelling must not be a real flag
 
 
@@ -38,6 +41,10 @@ def test_every_mapped_flag_is_a_flag_of_its_command() -> None:
     ("record --dataset.root=d --dataset.num_episodes=5 --n-envs 2",
      "record --out d --episodes 5 --workers 2"),
     ("explain --dataset.root=d --policy.path=p", "explain --dataset d --policy p"),
+    ("replay --robot.type=so101_sim --dataset.repo_id=local/d --dataset.root=data/d "
+     "--dataset.episode=1", "replay data/d --episode 1"),
+    ("export --policy.path=runs/a/pretrained_model --out policy/p",
+     "export runs/a/pretrained_model --out policy/p"),
 ])
 def test_lerobot_flags_get_the_command_line_that_parses(argv: str, meant: str, capsys) -> None:
     """`eval --policy.path=P` was answered "did you mean --policy-batch?"; now with the whole
@@ -54,11 +61,11 @@ def test_lerobot_flags_get_the_command_line_that_parses(argv: str, meant: str, c
 
 
 def test_a_misspelt_flag_still_gets_the_nearest_one(capsys) -> None:
-    """Only mapped flags are rewritten: a typo keeps its "did you mean" and compare, which
-    has no map, its --help line."""
+    """Only mapped flags are rewritten: a typo keeps its "did you mean", and a flag neither
+    mapped nor near one its --help line."""
     with pytest.raises(SystemExit):
         parse_command_line(["eval", "--polcy", "p", "--out", "o"])
     assert "--polcy; did you mean --policy?" in capsys.readouterr().err
     with pytest.raises(SystemExit):
-        parse_command_line(["compare", "a", "b", "--output_dir", "c"])
+        parse_command_line(["compare", "a", "b", "--destination", "c"])
     assert "`so101-sim compare --help` lists its arguments" in capsys.readouterr().err

@@ -30,8 +30,14 @@ LEROBOT_FLAGS: dict[str, dict[str, str | None]] = {
                "--dataset.repo_id": None, "--n-envs": "--workers", "--env.task": "--task"},
     "explain": {"--dataset.root": "--dataset", "--policy.path": "--policy",
                 "--output_dir": "--out", "--dataset.repo_id": None},
+    "replay": {"--dataset.root": "", "--dataset.episode": "--episode",
+               "--dataset.repo_id": None, "--robot.type": None},
+    "export": {"--policy.path": ""},
+    "compare": {"--output_dir": "--out"},
+    "demo": {"--output_dir": "--out", "--env.task": "--task"},
 }
-"""Per command: a lerobot flag (or another command's spelling) -> this command's flag."""
+"""Per command: a lerobot flag (or another command's spelling) -> this command's flag; ""
+for its positional argument (the value alone)."""
 
 PRESET_OF_POLICY_TYPE = {"diffusion": "cpu"}
 """lerobot's `--policy.type` -> train's `--preset` (`act` is both)."""
@@ -57,5 +63,5 @@ def rewrite_lerobot_flags(words: list[str], extras: list[str]) -> str | None:
         if new == "--preset":
             value = PRESET_OF_POLICY_TYPE.get(value, value)
         if new is not None:
-            fixed.extend([new, value] if value else [new])
+            fixed.extend([w for w in (new, value) if w])
     return f"so101-sim {' '.join(fixed)}"

@@ -133,7 +133,7 @@ def eval_policy_threads(asked: int | None = None, log: Callable[[str], None] = p
     at every barrier for the thread that lost its core (benchmarks/bench_busy.py). It depends
     on the machine only, never on the number of envs, so results stay K-independent.
     """
-    if asked is not None:
+    if asked:  # 0 or None: the default, as before
         if note := threads_note(asked, "eval"):
             log(note)
         return asked
