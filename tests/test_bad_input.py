@@ -821,6 +821,12 @@ def test_a_hub_repo_id_as_policy_says_how_to_fetch_it(tmp_path: Path, capsys,
                 "reads local folders only: fetch it once with `hf download someone/so101_demos "
                 "--repo-type dataset --local-dir so101_demos` and pass --dataset so101_demos"
                 ) in capsys.readouterr().err, command
+    (tmp_path / "pretrained_model").mkdir()  # run from inside a run: both lines
+    (tmp_path / "pretrained_model" / "config.json").write_text("{}")
+    assert main(["eval", "--policy", "someone/so101_policy", "--episodes", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "did you mean --policy pretrained_model? " in err
+    assert "; 'someone/so101_policy' looks like a Hugging Face Hub repo id" in err
     (tmp_path / "runs").mkdir()  # a missing folder in a local one is a local path
     for local in ("runs/missing", "a/b/c", "/abs/path"):
         assert main(["eval", "--policy", local, "--episodes", "1"]) == 2

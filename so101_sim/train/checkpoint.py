@@ -96,8 +96,9 @@ def _files_hint(path: Path, flag: str) -> str:
             "outputs/train/<run>/checkpoints/<step>/pretrained_model)"
             + (", or --policy expert" if flag == "--policy" else ""))
     near = nearby_policies(path) or shipped_named(path)
-    if near:
-        return f"did you mean {flag} {f' or {flag} '.join(map(str, near))}? " + hint
+    if near:  # in a folder holding a run, USER/REPO still gets how to fetch it
+        return (f"did you mean {flag} {f' or {flag} '.join(map(str, near))}? " + hint
+                + hub_id_hint(path, flag))
     return other_kind(path) + hint + hub_id_hint(path, flag)
 
 
