@@ -145,14 +145,15 @@ REDUCED = ("reduced: rendered at 180x240 (mesh detail of the recorded 640 px wid
 
 
 def test_a_pipe_in_a_value_stays_inside_its_table_cell(tmp_path):
-    """The images line of the default path, "mean |diff| 0.40", split report.md's table row."""
+    """The images line of the default path, "mean |diff| 0.40", split report.md's table row;
+    and the wall-time row gave --n-envs (16 envs) where one episode ran on one worker."""
     import re
 
     from so101_sim.harness.report import write_report
     from so101_sim.harness.results import check_record
 
     out = tmp_path / "run"
-    assert main(["eval", "--policy", "expert", "--episodes", "2", "--n-envs", "1", "--videos",
+    assert main(["eval", "--policy", "expert", "--episodes", "1", "--n-envs", "16", "--videos",
                  "0", "--image-size", "48x64", "--out", str(out)]) == 0
     info = json.loads((out / "eval_info.json").read_text())
     records = [check_record(json.loads(x), "episodes.jsonl")
@@ -165,6 +166,8 @@ def test_a_pipe_in_a_value_stays_inside_its_table_cell(tmp_path):
         assert len(re.split(r"(?<!\\)\|", row)) == 4, row
     assert "| images | reduced: rendered at 180x240" in md and "mean \\|diff\\| 0.40" in md
     assert "| env workers | local backend, 1 worker on 1 node |" in md  # not "1 workers"
+    wall = [x for x in md.splitlines() if x.startswith("| wall time")]
+    assert len(wall) == 1 and wall[0].endswith("s/episode, 1 env |"), wall  # not --n-envs 16
 
 
 def test_outputs_videos_report_and_resume(tmp_path, capsys):

@@ -36,8 +36,8 @@ def write_report(out_dir: str | Path, result: dict[str, Any],
         f"| failure modes | {_modes(agg['failure_modes'])} |",
         f"| avg episode length | {agg['avg_episode_len']:.1f} steps |",
         f"| avg sum / max reward | {agg['avg_sum_reward']:.3f} / {agg['avg_max_reward']:.3f} |",
-        f"| wall time (this run) | {agg['eval_s']:.1f} s, {agg['eval_ep_s']:.2f} s/episode, "
-        f"{counted(cfg['n_envs'], 'env')} |",
+        f"| wall time (this run) | {agg['eval_s']:.1f} s, {agg['eval_ep_s']:.2f} s/episode"
+        f"{_envs_ran(cfg)} |",
         f"| physics / render / policy | {t['physics_s']:.1f} / {t['render_s']:.1f} / "
         f"{t['policy_s']:.1f} s (summed over episodes) |",
     ]
@@ -72,6 +72,12 @@ def _worker_rows(cfg: dict[str, Any]) -> list[str]:
         rows.append(md_row("re-run", f"seed {r['seed']}: {r['error']} (run again; the "
                                      "result counted is the re-run's)"))
     return rows
+
+
+def _envs_ran(cfg: dict[str, Any]) -> str:
+    """The envs that ran, not --n-envs: 2 episodes under the default 16 run on 2 workers."""
+    ran = (cfg.get("workers") or {}).get("workers")
+    return f", {counted(ran, 'env')}" if ran else ""
 
 
 def _modes(modes: dict[str, int]) -> str:
