@@ -95,6 +95,56 @@ def test_a_gl_context_that_fails_is_one_line(tmp_path):
                          "picks one)")
 
 
+_FORK_AFTER_RENDER = """
+import multiprocessing as mp
+import gymnasium as gym
+import so101_sim
+
+def use_inherited(env, q):
+    try:
+        env.reset(seed=1)
+        q.put("rendered")
+    except RuntimeError as exc:
+        q.put(str(exc))
+
+if __name__ == "__main__":
+    env = gym.make("so101_sim/PickPlace-v0", image_size=(32, 32))
+    env.reset(seed=0)  # EGL's display is open in this process from here on
+    try:  # Gymnasium's async envs fork by default
+        gym.make_vec("so101_sim/PickPlace-v0", num_envs=2, vectorization_mode="async",
+                     image_size=(32, 32)).reset(seed=0)
+    except RuntimeError as exc:
+        print("MAKE_VEC:", exc)
+    q = mp.get_context("fork").SimpleQueue()
+    p = mp.get_context("fork").Process(target=use_inherited, args=(env, q))
+    p.start(); p.join()
+    print("INHERITED:", q.get())
+    envs = gym.make_vec("so101_sim/PickPlace-v0", num_envs=2, vectorization_mode="async",
+                        vector_kwargs={"context": "forkserver"}, image_size=(32, 32))
+    obs, _ = envs.reset(seed=0)
+    print("FORKSERVER:", obs["pixels"]["front"].shape)
+"""
+
+
+def test_a_fork_after_an_egl_render_is_refused_with_the_fix_not_a_hang(tmp_path):
+    """gym.make_vec(..., vectorization_mode="async") in a process that had rendered: its
+    forked workers waited forever in their first frame (Mesa's threads are not copied by
+    fork), and so did a forked child using the parent's env."""
+    if select_gl_backend() != "egl":
+        pytest.skip("EGL only: the refusal is for EGL's state after fork")
+    script = tmp_path / "fork_after_render.py"
+    script.write_text(_FORK_AFTER_RENDER)
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                          timeout=180, cwd=tmp_path)
+    out = proc.stdout
+    said = "cannot render in this process: it was forked from process"
+    for case in ("MAKE_VEC:", "INHERITED:"):
+        line = next((x for x in out.splitlines() if x.startswith(case)), "")
+        assert said in line and "vector_kwargs={'context': 'forkserver'}" in line, (out,
+                                                                                    proc.stderr)
+    assert "FORKSERVER: (2, 32, 32, 3)" in out, (out, proc.stderr)  # the fix it names works
+
+
 def test_missing_meshes_fall_back_to_primitive_visuals(monkeypatch, capsys):
     monkeypatch.setattr(scene.meshes, "find_mesh_dir", lambda: None)
     task = dataclasses.replace(load_task(), mesh_grid=0.0123)  # a fresh build_model cache key

@@ -74,6 +74,33 @@ NEAR_CLIP = {"wrist": 0.005}
 
 _LIVE: weakref.WeakSet[MultiCameraRenderer] = weakref.WeakSet()
 _ATEXIT_REGISTERED = False
+#: The parent's pid when this process was forked from one that had opened EGL's display.
+_FORKED_AFTER_EGL: int | None = None
+
+
+def _after_fork_in_child() -> None:
+    # EGL's driver state is copied by fork() but not its threads: Mesa's llvmpipe in the copy
+    # waits forever on the first frame (gym.make_vec(..., vectorization_mode="async") after a
+    # render in the parent did). Remember it, to refuse with the fix rather than hang.
+    global _FORKED_AFTER_EGL
+    egl = sys.modules.get("mujoco.egl")
+    if egl is not None and getattr(egl, "EGL_DISPLAY", None) is not None:
+        _FORKED_AFTER_EGL = os.getppid()
+    for renderer in list(_LIVE):  # the parent's contexts: freeing them here could hang too
+        renderer._gl = None
+
+
+os.register_at_fork(after_in_child=_after_fork_in_child)
+
+
+def _forked_after_egl_error(ppid: int) -> RuntimeError:
+    return RuntimeError(
+        f"MUJOCO_GL='egl' cannot render in this process: it was forked from process {ppid} "
+        "after that one had rendered, and EGL does not survive a fork (Mesa's renderer hangs "
+        "in the copy); start the processes with 'forkserver' or 'spawn' instead: "
+        "gym.make_vec(..., vectorization_mode='async', vector_kwargs={'context': "
+        "'forkserver'}), gym.vector.AsyncVectorEnv(fns, context='forkserver') or "
+        "multiprocessing.get_context('forkserver'); or fork before the first render")
 
 
 def _close_all() -> None:
@@ -103,6 +130,8 @@ class MultiCameraRenderer:
         model.vis.global_.offwidth = max(model.vis.global_.offwidth, total_w)
         model.vis.global_.offheight = max(model.vis.global_.offheight, height)
         self._model = model
+        if self.backend == "egl" and _FORKED_AFTER_EGL is not None:
+            raise _forked_after_egl_error(_FORKED_AFTER_EGL)
         try:
             self._gl = _gl_context_class(self.backend)(total_w, height)
             _register_atexit()
@@ -139,6 +168,10 @@ class MultiCameraRenderer:
 
     def render(self, data: mujoco.MjData) -> np.ndarray:
         """Return a new (H, W * n_cameras, 3) uint8 frame, cameras left to right."""
+        if self._gl is None:
+            if _FORKED_AFTER_EGL is not None:  # a renderer the parent opened, used after fork
+                raise _forked_after_egl_error(_FORKED_AFTER_EGL)
+            raise RuntimeError("this renderer is closed; create the env (or renderer) again")
         self._gl.make_current()
         m, scn = self._model, self._scene
         default_znear = m.vis.map.znear
