@@ -108,7 +108,7 @@ def use_inherited(env, q):
         q.put(str(exc))
 
 if __name__ == "__main__":
-    env = gym.make("so101_sim/PickPlace-v0", image_size=(32, 32))
+    env = gym.make("so101_sim/PickPlaceDr-v0", image_size=(32, 32))  # uploads textures too
     env.reset(seed=0)  # EGL's display is open in this process from here on
     try:  # Gymnasium's async envs fork by default
         gym.make_vec("so101_sim/PickPlace-v0", num_envs=2, vectorization_mode="async",

@@ -86,8 +86,9 @@ def _after_fork_in_child() -> None:
     egl = sys.modules.get("mujoco.egl")
     if egl is not None and getattr(egl, "EGL_DISPLAY", None) is not None:
         _FORKED_AFTER_EGL = os.getppid()
-    for renderer in list(_LIVE):  # the parent's contexts: freeing them here could hang too
-        renderer._gl = None
+        for renderer in list(_LIVE):  # the parent's contexts: freeing them here could hang too
+            if renderer.backend == "egl":
+                renderer._gl = None
 
 
 os.register_at_fork(after_in_child=_after_fork_in_child)
@@ -168,11 +169,7 @@ class MultiCameraRenderer:
 
     def render(self, data: mujoco.MjData) -> np.ndarray:
         """Return a new (H, W * n_cameras, 3) uint8 frame, cameras left to right."""
-        if self._gl is None:
-            if _FORKED_AFTER_EGL is not None:  # a renderer the parent opened, used after fork
-                raise _forked_after_egl_error(_FORKED_AFTER_EGL)
-            raise RuntimeError("this renderer is closed; create the env (or renderer) again")
-        self._gl.make_current()
+        self._make_current()
         m, scn = self._model, self._scene
         default_znear = m.vis.map.znear
         for i, (cam, rect) in enumerate(zip(self._cams, self._rects, strict=True)):
@@ -198,7 +195,7 @@ class MultiCameraRenderer:
         if self.texture_versions.get(texid) == version:
             return
         self.texture_versions[texid] = version
-        self._gl.make_current()
+        self._make_current()
         mujoco.mjr_uploadTexture(self._model, self._con, texid)
         if nearest:
             from OpenGL import GL  # PyOpenGL: mujoco's own GL contexts are built on it
@@ -208,6 +205,13 @@ class MultiCameraRenderer:
                                GL.GL_NEAREST_MIPMAP_NEAREST)
             GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
             GL.glBindTexture(GL.GL_TEXTURE_2D, 0)
+
+    def _make_current(self) -> None:
+        if self._gl is None:
+            if _FORKED_AFTER_EGL is not None:  # a renderer the parent opened, used after fork
+                raise _forked_after_egl_error(_FORKED_AFTER_EGL)
+            raise RuntimeError("this renderer is closed; create the env (or renderer) again")
+        self._gl.make_current()
 
     def close(self) -> None:
         if self._gl is not None:
