@@ -95,6 +95,45 @@ def test_a_gl_context_that_fails_is_one_line(tmp_path):
                          "picks one)")
 
 
+def test_a_pyopengl_platform_other_than_mujoco_gl_is_one_line(monkeypatch, tmp_path):
+    """MUJOCO_GL=egl with PYOPENGL_PLATFORM=osmesa left in the shell for another tool: mujoco.egl
+    raised ImportError under a traceback, its message leaving the value out ("is set to {!r}");
+    with MUJOCO_GL unset, EGL was picked against the pinned platform and failed the same way."""
+    from so101_sim.sim.rendering_probe import probe_backend
+
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    monkeypatch.setenv("PYOPENGL_PLATFORM", "osmesa")
+    with pytest.raises(RuntimeError, match=r"^MUJOCO_GL='egl' needs PyOpenGL on egl, but "
+                       r"PYOPENGL_PLATFORM='osmesa' is set; unset PYOPENGL_PLATFORM"):
+        select_gl_backend()
+    monkeypatch.setenv("PYOPENGL_PLATFORM", "EGL")  # the same platform, in any case
+    assert select_gl_backend() == "egl"
+
+    monkeypatch.delenv("MUJOCO_GL")  # unset: only the pinned platform can be used
+    monkeypatch.setenv("PYOPENGL_PLATFORM", "glx")
+    with pytest.raises(RuntimeError, match=r"^headless rendering \(MUJOCO_GL unset\) needs "
+                       r"PyOpenGL on egl or osmesa, but PYOPENGL_PLATFORM='glx' is set"):
+        select_gl_backend()
+    monkeypatch.setenv("PYOPENGL_PLATFORM", "osmesa")
+    if probe_backend("osmesa") is None:
+        assert select_gl_backend() == "osmesa" == os.environ["MUJOCO_GL"]
+    else:  # no OSMesa here (this machine): EGL would work but PyOpenGL is pinned elsewhere
+        with pytest.raises(RuntimeError, match=r"^PYOPENGL_PLATFORM='osmesa' \(MUJOCO_GL "
+                           r"unset\) leaves only osmesa, which failed here \(.+\); unset "
+                           r"PYOPENGL_PLATFORM to let so101_sim try EGL and OSMesa$"):
+            select_gl_backend()
+        assert "MUJOCO_GL" not in os.environ
+
+    env = {**os.environ, "MUJOCO_GL": "egl", "PYOPENGL_PLATFORM": "osmesa",
+           "HF_HUB_OFFLINE": "1"}
+    r = subprocess.run([sys.executable, "-m", "so101_sim", "demo", "--steps", "1", "--out",
+                        str(tmp_path / "demo")], env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith(
+        "so101-sim demo: error: MUJOCO_GL='egl' needs PyOpenGL on egl, but PYOPENGL_PLATFORM=")
+
+
 _FORK_AFTER_RENDER = """
 import multiprocessing as mp
 import gymnasium as gym

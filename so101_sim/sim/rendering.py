@@ -34,6 +34,7 @@ def select_gl_backend() -> str:
     The probe runs in a child process because PyOpenGL binds its platform on first import.
     """
     chosen = os.environ.get("MUJOCO_GL", "").strip().lower()
+    pyopengl = os.environ.get("PYOPENGL_PLATFORM", "").strip().lower()
     if chosen:
         if chosen not in (*BACKENDS, "glfw"):
             raise RuntimeError(f"MUJOCO_GL={chosen!r} is not supported by so101_sim; expected "
@@ -43,16 +44,25 @@ def select_gl_backend() -> str:
             # else GLFW warns twice and MuJoCo fails later with "no OpenGL platform library"
             raise RuntimeError(f"MUJOCO_GL='glfw' needs a display and DISPLAY is not set here; "
                                f"{HEADLESS_HINT}")
+        if chosen in BACKENDS and pyopengl and pyopengl != chosen:
+            raise RuntimeError(_platform_clash(f"MUJOCO_GL={chosen!r}", chosen, pyopengl))
         return chosen
+    if pyopengl and pyopengl not in BACKENDS:
+        raise RuntimeError(_platform_clash("headless rendering (MUJOCO_GL unset)", "egl or osmesa",
+                                           pyopengl))
     errors = {}
-    for backend in BACKENDS:
+    for backend in (pyopengl,) if pyopengl else BACKENDS:  # PyOpenGL's platform is fixed
         err = probe_backend(backend)
         if err is None:
             os.environ["MUJOCO_GL"] = backend
-            os.environ.setdefault("PYOPENGL_PLATFORM", backend)
+            os.environ["PYOPENGL_PLATFORM"] = backend
             print(f"so101_sim: MUJOCO_GL not set; rendering with {backend}", file=sys.stderr)
             return backend
         errors[backend] = err
+    if pyopengl:
+        raise RuntimeError(f"PYOPENGL_PLATFORM={pyopengl!r} (MUJOCO_GL unset) leaves only "
+                           f"{pyopengl}, which failed here ({errors[pyopengl]}); unset "
+                           "PYOPENGL_PLATFORM to let so101_sim try EGL and OSMesa")
     raise RuntimeError(
         "no headless OpenGL found: EGL failed ({egl}); OSMesa failed ({osmesa}). Install Mesa's "
         "EGL (Debian: apt-get install libegl1 libgl1-mesa-dri) or OSMesa (apt-get install "
@@ -67,6 +77,14 @@ def _gl_context_class(backend: str) -> type:
     else:
         from mujoco.glfw import GLContext
     return GLContext
+
+
+def _platform_clash(gl: str, wants: str, pyopengl: str) -> str:
+    # MuJoCo's egl/osmesa contexts are PyOpenGL's, which binds PYOPENGL_PLATFORM on import;
+    # mujoco.egl's own error for this leaves the value out ("is set to {!r}").
+    return (f"{gl} needs PyOpenGL on {wants}, but PYOPENGL_PLATFORM={pyopengl!r} is set; "
+            f"unset PYOPENGL_PLATFORM (so101_sim then sets it to match) or set MUJOCO_GL and "
+            f"PYOPENGL_PLATFORM to the same backend, egl or osmesa")
 
 
 #: Near clipping plane (metres) of cameras that look at things a few centimetres away.
