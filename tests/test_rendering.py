@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import signal
 import subprocess
 import sys
 
@@ -173,15 +174,20 @@ def test_a_fork_after_an_egl_render_is_refused_with_the_fix_not_a_hang(tmp_path)
         pytest.skip("EGL only: the refusal is for EGL's state after fork")
     script = tmp_path / "fork_after_render.py"
     script.write_text(_FORK_AFTER_RENDER)
-    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
-                          timeout=180, cwd=tmp_path)
-    out = proc.stdout
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                            start_new_session=True)  # a hang leaves no forked worker behind
+    try:
+        out, err = proc.communicate(timeout=180)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        pytest.fail(f"hung: a forked worker waited in its first frame\n{out}\n{err}")
     said = "cannot render in this process: it was forked from process"
     for case in ("MAKE_VEC:", "INHERITED:"):
         line = next((x for x in out.splitlines() if x.startswith(case)), "")
-        assert said in line and "vector_kwargs={'context': 'forkserver'}" in line, (out,
-                                                                                    proc.stderr)
-    assert "FORKSERVER: (2, 32, 32, 3)" in out, (out, proc.stderr)  # the fix it names works
+        assert said in line and "vector_kwargs={'context': 'forkserver'}" in line, (out, err)
+    assert "FORKSERVER: (2, 32, 32, 3)" in out, (out, err)  # the fix it names works
 
 
 def test_missing_meshes_fall_back_to_primitive_visuals(monkeypatch, capsys):
