@@ -135,6 +135,24 @@ def test_a_pyopengl_platform_other_than_mujoco_gl_is_one_line(monkeypatch, tmp_p
         "so101-sim demo: error: MUJOCO_GL='egl' needs PyOpenGL on egl, but PYOPENGL_PLATFORM=")
 
 
+def test_a_mujoco_egl_device_id_that_is_no_index_is_named(monkeypatch):
+    """MUJOCO_EGL_DEVICE_ID=x: MuJoCo's "invalid literal for int() with base 10: 'x'" named
+    no variable (with MUJOCO_GL unset: "EGL failed (ValueError: ...)" among both backends)."""
+    said = (r"^MUJOCO_EGL_DEVICE_ID='x' is not a device index; expected an integer from 0 "
+            r"\(the first EGL device\), or unset it$")
+    monkeypatch.setenv("MUJOCO_EGL_DEVICE_ID", "x")
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    with pytest.raises(RuntimeError, match=said):
+        select_gl_backend()
+    monkeypatch.delenv("MUJOCO_GL")
+    monkeypatch.delenv("PYOPENGL_PLATFORM", raising=False)
+    with pytest.raises(RuntimeError, match=said):
+        select_gl_backend()
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    monkeypatch.setenv("MUJOCO_EGL_DEVICE_ID", "0")  # an index: MuJoCo checks its range
+    assert select_gl_backend() == "egl"
+
+
 _FORK_AFTER_RENDER = """
 import multiprocessing as mp
 import gymnasium as gym

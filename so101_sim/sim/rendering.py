@@ -35,6 +35,11 @@ def select_gl_backend() -> str:
     """
     chosen = os.environ.get("MUJOCO_GL", "").strip().lower()
     pyopengl = os.environ.get("PYOPENGL_PLATFORM", "").strip().lower()
+    device = os.environ.get("MUJOCO_EGL_DEVICE_ID")
+    if chosen in ("", "egl") and device is not None and not device.strip().isdigit():
+        # else MuJoCo's int() fails with "invalid literal for int()", naming no variable
+        raise RuntimeError(f"MUJOCO_EGL_DEVICE_ID={device!r} is not a device index; expected "
+                           "an integer from 0 (the first EGL device), or unset it")
     if chosen:
         if chosen not in (*BACKENDS, "glfw"):
             raise RuntimeError(f"MUJOCO_GL={chosen!r} is not supported by so101_sim; expected "
