@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import os
 import struct
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -247,3 +249,40 @@ def test_simplified_meshes_key_follows_source_bytes(
     assert np.abs(out[name][0]).max() == pytest.approx(0.02)
     after = {p.name for p in cache.glob("*.npz")}
     assert len(after - before) == 1 and next(iter(after - before)).startswith(name)
+
+
+def test_a_cache_that_cannot_be_written_falls_back_with_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A cache folder that cannot be made or written (a missing or read-only home, as in a
+    container run under another uid; SO101_CACHE_DIR=/proc/x): `so101-sim demo` stopped at
+    "[Errno 2] No such file or directory: '/proc/x'", naming no cache, and eval's render
+    self-check and workers each under a traceback."""
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in meshes.REQUIRED_MESHES:
+        _write_binary_stl(src / f"{name}.stl", CUBE_V * 0.01, CUBE_F, b"cube")
+    monkeypatch.setenv("SO101_MESH_DIR", str(src))
+    expected = meshes.simplified_meshes(grid=0.001, cache_dir=tmp_path / "ok")
+    (tmp_path / "file").write_text("not a folder")
+    blocked = tmp_path / "file" / "meshes"  # mkdir fails whoever runs it, root included
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+
+    out = meshes.simplified_meshes(grid=0.001, cache_dir=blocked)
+    assert out is not None and expected is not None
+    for name in meshes.REQUIRED_MESHES:
+        np.testing.assert_array_equal(out[name][0], expected[name][0])
+    fallback = tmp_path / "tmp" / f"so101_sim-{os.getuid()}" / "meshes"
+    assert len(list(fallback.glob("*.npz"))) == len(meshes.REQUIRED_MESHES)
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"so101_sim: the mesh cache {blocked} cannot "
+                                                   f"be written (")
+    assert f"caching them in {fallback} instead: set SO101_CACHE_DIR to a writable" in err
+    meshes.simplified_meshes(grid=0.001, cache_dir=blocked)  # said once per process
+    assert capsys.readouterr().err == ""
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "file"))  # no temp folder either
+    other = tmp_path / "file" / "other"
+    out = meshes.simplified_meshes(grid=0.001, cache_dir=other)
+    assert out is not None and all(len(f) == 12 for _, f in out.values())
+    assert "simplifying them in memory in each process instead" in capsys.readouterr().err

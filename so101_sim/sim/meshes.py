@@ -16,6 +16,8 @@ import hashlib
 import importlib.util
 import os
 import re
+import sys
+import tempfile
 import uuid
 from pathlib import Path
 
@@ -298,14 +300,14 @@ def simplified_meshes(
     mesh_dir = find_mesh_dir()
     if mesh_dir is None:
         return None
-    cache = Path(cache_dir).expanduser() if cache_dir is not None else _default_cache_dir()
-    cache.mkdir(parents=True, exist_ok=True)
+    asked = Path(cache_dir).expanduser() if cache_dir is not None else _default_cache_dir()
+    cache = _usable_cache(asked)
 
     result: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for name in REQUIRED_MESHES:
         source = (mesh_dir / f"{name}.stl").read_bytes()
-        entry = cache / f"{name}-{_cache_key(source, grid)}.npz"
-        cached = _load_entry(entry) if entry.is_file() else None
+        entry = cache / f"{name}-{_cache_key(source, grid)}.npz" if cache else None
+        cached = _load_entry(entry) if entry is not None and entry.is_file() else None
         if cached is None:
             try:
                 vertices, faces = _parse_stl(source)
@@ -313,6 +315,50 @@ def simplified_meshes(
                 raise ValueError(f"{mesh_dir / f'{name}.stl'}: {exc}") from None
             vertices, faces = simplify(vertices, faces, grid)
             cached = (vertices.astype(np.float32), faces.astype(np.int32))
-            _save_entry(entry, *cached)
+            if entry is not None:
+                try:
+                    _save_entry(entry, *cached)
+                except OSError as exc:  # e.g. the disk filled up: the meshes are still right
+                    _note_cache(entry.parent, exc, None, made=False)
+                    cache = None
         result[name] = cached
     return result
+
+
+_NOTED: set[Path] = set()
+
+
+def _usable_cache(cache: Path) -> Path | None:
+    """`cache`, made if need be; else a per-user folder in the temp dir (a home that is missing
+    or read-only, as in a container run under another uid); else None: simplify in memory."""
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+        if os.access(cache, os.W_OK):
+            return cache
+        raise PermissionError(13, "not writable")
+    except OSError as exc:
+        problem = exc
+    fallback: Path | None = Path(tempfile.gettempdir()) / f"so101_sim-{os.getuid()}" / "meshes"
+    made = False
+    try:
+        made = not fallback.is_dir()
+        fallback.mkdir(parents=True, exist_ok=True)
+        if fallback.parent.stat().st_uid != os.getuid():  # made by another user: not ours
+            raise PermissionError(13, "owned by another user")
+    except OSError:
+        fallback, made = None, False
+    _note_cache(cache, problem, fallback, made)
+    return fallback
+
+
+def _note_cache(cache: Path, exc: OSError, fallback: Path | None, made: bool) -> None:
+    """One line per process (workers: only the one that made the fallback folder)."""
+    import multiprocessing
+
+    if cache in _NOTED or not (made or multiprocessing.parent_process() is None):
+        return
+    _NOTED.add(cache)
+    where = (f"caching them in {fallback} instead" if fallback else
+             "simplifying them in memory in each process instead")
+    print(f"so101_sim: the mesh cache {cache} cannot be written ({exc.strerror or exc}); "
+          f"{where}: set {CACHE_DIR_ENV} to a writable folder to keep them", file=sys.stderr)
