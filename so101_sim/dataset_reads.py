@@ -20,6 +20,7 @@ import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from shlex import quote
 
 import numpy as np
 
@@ -155,8 +156,8 @@ def fine_tune_problem(argv: Sequence[str], home: Path | None) -> str | None:
     return (f"{found[0]} takes camera frames of {th}x{tw}, and dataset {data.root} holds "
             f"{h}x{w} ({cam}): lerobot-train hands a policy the dataset's frames as they are, "
             "so it would learn from other pictures than it sees; fine-tune it with `so101-sim "
-            f"train --dataset {data.root} --init-from {found[0]} --out RUN` (which resizes as "
-            f"its training did), or record the dataset at {th}x{tw}")
+            f"train --dataset {quote(str(data.root))} --init-from {quote(str(found[0]))} "
+            f"--out RUN` (which resizes as its training did), or record the dataset at {th}x{tw}")
 
 
 __all__ = ["DatasetReads", "fine_tune_problem"]

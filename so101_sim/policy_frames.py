@@ -20,6 +20,7 @@ import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from shlex import quote
 
 from so101_sim.tasks import ALL_CAMERAS
 from so101_sim.train.checkpoint import (
@@ -189,7 +190,8 @@ def refuse_or_warn(problem: InputProblem | None, flags: str,
 
 def _eval_fix(reads: PolicyReads, missing: Sequence[str]) -> str:
     other = [cam for cam in missing if cam not in ALL_CAMERAS]
-    return (f"`so101-sim eval --policy {reads.policy}` renders any of {', '.join(ALL_CAMERAS)}"
+    return (f"`so101-sim eval --policy {quote(str(reads.policy))}` renders any of "
+            f"{', '.join(ALL_CAMERAS)}"
             + (f" and maps other names with --camera-map, e.g. --camera-map {other[0]}=front"
                if other else ""))
 
@@ -263,7 +265,8 @@ def async_server_problem(argv: Sequence[str],
         + f" calls predict_action_chunk on one observation, without the observation history a "
         f"{kind} policy keeps, so every chunk fails on the server (lerobot issue #3861) and the "
         "arm never moves; run it in one process instead: lerobot-rollout --strategy.type=base "
-        f"--policy.path={path} --robot.type=so101_sim, or so101-sim eval --policy {path}"
+        f"{quote(f'--policy.path={path}')} --robot.type=so101_sim, or so101-sim eval --policy "
+        f"{quote(str(path))}"
         + ("; or serve it with python -m lerobot_robot_so101_sim.patched_server (lerobot's "
            "server and flags, fixed for diffusion) and add --robot.patched_server=true"
            if kind == "diffusion" else ""), True)

@@ -30,6 +30,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from shlex import quote
 from typing import Any
 
 from so101_sim.cli.arg_types import (
@@ -303,7 +304,7 @@ def _size_flag(args: argparse.Namespace) -> str:
 
 
 def _eval_command(args: argparse.Namespace) -> str:
-    return (f"so101-sim eval --policy {args.policy} --task {args.task} --episodes "
+    return (f"so101-sim eval --policy {quote(str(args.policy))} --task {args.task} --episodes "
             f"{args.episodes} --seed-start {args.seed_start} {_size_flag(args)}")
 
 

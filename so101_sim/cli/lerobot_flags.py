@@ -8,6 +8,8 @@ what each one means here. `None`: the flag has no counterpart and is left out.
 
 from __future__ import annotations
 
+from shlex import join
+
 __all__ = ["LEROBOT_FLAGS", "PRESET_OF_POLICY_TYPE", "rewrite_lerobot_flags"]
 
 _POLICY = {"--policy.n_action_steps": "--n-action-steps",
@@ -64,4 +66,4 @@ def rewrite_lerobot_flags(words: list[str], extras: list[str]) -> str | None:
             value = PRESET_OF_POLICY_TYPE.get(value, value)
         if new is not None:
             fixed.extend([w for w in (new, value) if w])
-    return f"so101-sim {' '.join(fixed)}"
+    return f"so101-sim {join(fixed)}"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import difflib
 import sys
+from shlex import join
 
 from so101_sim.cli import commands
 from so101_sim.cli.arg_types import (
@@ -88,7 +89,7 @@ def unrecognized(command: argparse.ArgumentParser, words: list[str], extras: lis
         if flag.startswith("--") and dest in positionals:  # `--dataset D` or `--dataset=D`
             fixed = [value if w == extra else w for w in words if w != extra or value]
             return (f"{message}{dest.upper()} is positional in `so101-sim {name}`, with no "
-                    f"flag: so101-sim {' '.join(fixed)}")
+                    f"flag: so101-sim {join(fixed)}")
         close = difflib.get_close_matches(flag, flags, n=1, cutoff=0.75)
         if extra.startswith("-") and close:
             return f"{message}did you mean {close[0]}? (`so101-sim {name} --help` lists them)"

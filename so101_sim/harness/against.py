@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from shlex import quote
 from typing import Any
 
 from so101_sim.dataset import EVAL_SEED_START
@@ -127,8 +128,8 @@ def more_seeds_hint(stop: AgainstRun, run: str | Path) -> str | None:
     again = resume_command()  # an --against run resumes onto RUN's new seeds
     then = f"then {again}" if again else "then this evaluation again with resume=True"
     return (f"all {n} seeds of {run} ran without a decision; to go on, extend it: run its "
-            f"eval command again with --out {run} --resume --episodes {2 * n} (the {n} seeds "
-            f"already run are kept), {then} (its {n} episodes are kept too)")
+            f"eval command again with --out {quote(str(run))} --resume --episodes {2 * n} "
+            f"(the {n} seeds already run are kept), {then} (its {n} episodes are kept too)")
 
 
 def render_note(reference: RunSide, config: dict[str, Any]) -> str | None:

@@ -12,6 +12,7 @@ import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from shlex import quote
 from typing import Any
 
 from so101_sim.harness.results import CONFIG, EPISODES, INFO, check_eval_info
@@ -144,14 +145,14 @@ def missing_info_reason(path: Path) -> str:
         return "is a file, not a folder"
     if (path / EPISODES).is_file():
         return (f"has no {INFO} yet: its eval was interrupted; finish it by running its "
-                f"command again with --out {path} --resume")
+                f"command again with --out {quote(str(path))} --resume")
     runs = sorted(p.parent for p in path.glob(f"*/{EPISODES}"))
     if runs and all(_config_task(run) == run.name for run in runs):
         # `eval --task a,b` writes one folder per task, named after it, and the suite's file
         # after its last task
         return (f"has no {INFO} yet: it holds the tasks {', '.join(r.name for r in runs)} of "
                 f"an interrupted `eval --task a,b`; finish it by running its command again "
-                f"with --out {path} --resume")
+                f"with --out {quote(str(path))} --resume")
     if runs:  # a folder of runs, as outputs/eval holds each default --out
         finished = [r for r in runs if (r / INFO).is_file()] or runs
         latest = max(finished, key=lambda r: (r / EPISODES).stat().st_mtime)
@@ -211,7 +212,7 @@ def _extend_hint(a: RunSide, b: RunSide) -> str:
         if (short.sequential is None and seeds and seeds < set(wanted)
                 and min(seeds) == wanted[0] and wanted[-1] == wanted[0] + len(wanted) - 1):
             return (f"; to pair all {len(long.success)} seeds, extend {name}: run its eval "
-                    f"command again with --out {short.path} --resume --episodes "
+                    f"command again with --out {quote(str(short.path))} --resume --episodes "
                     f"{len(long.success)} (the {len(short.success)} seeds already run are kept)")
     return ""
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from shlex import quote
 from typing import Any
 
 from so101_sim.harness.compare import (
@@ -74,7 +75,7 @@ def mixed_error(a: Path, b: Path, tasks_a: list[str] | None,
     pair = (suite / task, other) if suite == a else (other, suite / task)
     return (f"{suite} is an `so101-sim eval --task a,b` folder (one subfolder per task) and "
             f"{other} is one task's; compare that task's subfolder with it: "
-            f"so101-sim compare {pair[0]} {pair[1]}")
+            f"so101-sim compare {quote(str(pair[0]))} {quote(str(pair[1]))}")
 
 
 def suite_summary_lines(r: dict[str, Any]) -> list[str]:

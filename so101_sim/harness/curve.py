@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
+from shlex import quote
 from typing import Any
 
 from so101_sim.dataset.interrupts import Interrupts
@@ -72,7 +73,8 @@ def _not_a_run(path: Path) -> str:
         return "does not exist"
     run = next((p for p in path.parents[:3] if run_checkpoints(p)), None)
     if run is not None:
-        return f"is one checkpoint of the run {run} (did you mean `so101-sim curve {run}`?)"
+        return (f"is one checkpoint of the run {run} (did you mean `so101-sim curve "
+                f"{quote(str(run))}`?)")
     return "holds no checkpoints/step_*/pretrained_model"
 
 

@@ -13,6 +13,7 @@ import json
 import shutil
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from shlex import quote
 
 from so101_sim.harness.curve import plot_curve, read_curve, widest_rows
 from so101_sim.harness.policies.checks import ACT_TRAINING_ONLY, weights_digest
@@ -188,7 +189,8 @@ def model_card(train_info: dict, evals: dict | list[dict] | None, curve: list[di
     if success_curve:
         lines += _success_rows(success_curve)
     flag = "" if tasks == [DEFAULT_TASK] else f" --task {','.join(tasks)}"
-    lines += ["", f"Evaluate: `so101-sim eval --policy policy/{name}{flag} --episodes 100`", ""]
+    lines += ["", f"Evaluate: `so101-sim eval --policy {quote(f'policy/{name}')}{flag} "
+              "--episodes 100`", ""]
     return "\n".join(lines)
 
 
@@ -285,8 +287,8 @@ def check_not_itself(checkpoint: Path, dest: Path) -> None:
         raise ValueError(f"--out {dest} is the checkpoint itself; an export rewrites its folder "
                          "whole, and the card's training log and curve come from the run the "
                          "checkpoint was trained in, so they would be lost: export the run's "
-                         f"checkpoint again (so101-sim export RUN/pretrained_model --out {dest} "
-                         "--eval EVAL), or choose another --out")
+                         "checkpoint again (so101-sim export RUN/pretrained_model --out "
+                         f"{quote(str(dest))} --eval EVAL), or choose another --out")
     if here in there.parents:
         raise ValueError(f"--out {dest} lies inside the checkpoint {checkpoint}; choose a "
                          "folder outside it")

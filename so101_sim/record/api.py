@@ -25,6 +25,7 @@ import json
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from shlex import quote
 from typing import Any
 
 import numpy as np
@@ -199,9 +200,10 @@ def replay(dataset_dir: str | Path, episode: int) -> float:
         hint = (f"; it was recorded through --robot.type={robot} before the robot noted its "
                 f"seeds (no episode {episode} in {ROBOT_EPISODES}), so replay it with "
                 f"lerobot-replay --robot.type={robot} --robot.seed=SEED "
-                f"--robot.episode_end=hold --dataset.repo_id=local/{root.name} "
-                f"--dataset.root={root} --dataset.episode={episode} (SEED: that episode's seed "
-                "in lerobot-record's --robot.outcomes_path file)") if robot == "so101_sim" else ""
+                f"--robot.episode_end=hold {quote(f'--dataset.repo_id=local/{root.name}')} "
+                f"{quote(f'--dataset.root={root}')} --dataset.episode={episode} (SEED: that "
+                "episode's seed in lerobot-record's --robot.outcomes_path "
+                "file)") if robot == "so101_sim" else ""
         raise ValueError(f"{root} has no episode_seed feature: replay re-simulates an episode "
                          "from the reset seed `so101-sim record` stores, so it needs a dataset "
                          f"recorded by so101-sim{hint}")

@@ -14,6 +14,7 @@ import io
 import json
 import warnings
 from pathlib import Path
+from shlex import quote
 from typing import Any
 
 from so101_sim.dataset.reader import recorded_seeds, recorded_task
@@ -106,8 +107,8 @@ def other_kind(path: Path) -> str:
     """What a folder given for a policy is instead, if so101-sim wrote it ("" if not): an
     evaluation (and the checkpoint it evaluated) or a dataset, and the command that takes it."""
     if (path / "meta" / "info.json").is_file():
-        return (f"it is a LeRobotDataset, which `so101-sim train --dataset {path} --out RUN` "
-                "trains a policy on; ")
+        return (f"it is a LeRobotDataset, which `so101-sim train --dataset {quote(str(path))} "
+                "--out RUN` trains a policy on; ")
     if not (path / "eval_config.json").is_file():
         return ""
     of = ""

@@ -13,6 +13,7 @@ import math
 import pickle
 import shutil
 from pathlib import Path
+from shlex import quote
 from typing import Any
 
 import torch
@@ -163,7 +164,8 @@ def resumed_sizes(last: Path, steps: int | None, batch_size: int | None,
     elif own_batch is not None and batch_size != own_batch:
         raise TrainError(f"{out} was trained at --batch-size {own_batch}, not {batch_size}; "
                          "resume without --batch-size (a run keeps one), or fine-tune at "
-                         f"another in a new run with --init-from {last / 'pretrained_model'}")
+                         "another in a new run with --init-from "
+                         f"{quote(str(last / 'pretrained_model'))}")
     steps = info.get("total_steps") if steps is None else steps
     if steps is not None and done is not None and steps < done:
         raise TrainError(f"--steps {steps}: {out} is already at step {done}; give more total "
