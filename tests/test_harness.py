@@ -329,6 +329,61 @@ def test_a_ctrl_c_lost_in_a_gc_callback_still_stops_eval(short, tmp_path, lose_a
     assert signal.getsignal(signal.SIGINT) is before  # restored
 
 
+TERMINATES = '''
+import os, signal
+from so101_sim.harness import expert_policy
+
+
+class Terminates:
+    """The expert; SIGTERM to this process as the second seed starts."""
+
+    def __init__(self, task):
+        self.inner = expert_policy(task)
+        self.info = self.inner.info
+
+    def start_episode(self, slot, seed):
+        if seed == 100_001:
+            os.kill(os.getpid(), signal.SIGTERM)
+        self.inner.start_episode(slot, seed)
+
+    def predict_chunks(self, requests):
+        return self.inner.predict_chunks(requests)
+
+
+def make(task):
+    return Terminates(task)
+'''
+
+
+def test_sigterm_ends_an_eval_with_its_resume_line(short, tmp_path):
+    """`timeout 600 so101-sim eval ...` or a cancelled CI job sends SIGTERM: eval died without
+    a word (rc -15) while record, train and curve said what was kept; now it ends as Ctrl-C
+    does, with the command that resumes, and that command finishes the run."""
+    (tmp_path / "terminates.py").write_text(TERMINATES)
+    env = {**os.environ, "PYTHONPATH": str(tmp_path), "HF_HUB_OFFLINE": "1",
+           "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    out = tmp_path / "run"
+    argv = [sys.executable, "-m", "so101_sim.cli", "eval", "--policy", "terminates:make",
+            "--task", str(short), "--episodes", "3", "--n-envs", "1", "--videos", "0",
+            "--image-size", "48x64", "--out", str(out)]
+    import subprocess
+
+    r = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=300,
+                       start_new_session=True)
+    assert r.returncode == 130, (r.returncode, r.stderr[-2000:])
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("so101-sim eval: interrupted; every finished episode is in "
+                           "episodes.jsonl (finish with: ")
+    lines = (out / "episodes.jsonl").read_text().splitlines()
+    assert [json.loads(x)["seed"] for x in lines] == [100_000]
+    again = last.split("(finish with: ", 1)[1].removesuffix(")")
+    assert again.endswith(" --resume")
+    policy = load_policy("expert", task=str(short))  # the resumed run: no SIGTERM this time
+    res = evaluate(policy, task=str(short), episodes=3, n_envs=1, videos=0, report=False,
+                   out_dir=out, resume=True, image_size=(48, 64), **_quiet())
+    assert [e["seed"] for e in res["per_episode"]] == [100_000, 100_001, 100_002]
+
+
 class _CountThreads(_HoldStill):
     """Notes torch's CPU thread count at every forward."""
 

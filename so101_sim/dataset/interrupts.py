@@ -4,7 +4,7 @@ Every writer of a dataset (``record``, ``eval --save-rollouts``) installs ``Inte
 signal becomes a KeyboardInterrupt, deferred while an episode is being saved; one that Python
 dropped (raised inside a garbage-collection callback) is raised again by ``check`` at the
 loop's next turn. ``train`` (during start-up) and ``curve`` (between checkpoints) install it
-too, and ``eval`` without a dataset for SIGINT alone.
+too, and ``eval`` without a dataset for whichever of the two still has Python's default.
 """
 
 from __future__ import annotations
@@ -26,6 +26,13 @@ class Interrupts:
         self.pending: int | None = None
         self.seen: int | None = None  # the last signal handled, raised or deferred
         self._old: dict[int, Any] = {}
+
+    @classmethod
+    def of_defaults(cls) -> Interrupts:
+        """For those of SIGINT and SIGTERM still at Python's default (KeyboardInterrupt, a
+        silent kill): a handler the caller or Ray installed stays theirs."""
+        usual = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
+        return cls(tuple(s for s, h in usual.items() if signal.getsignal(s) is h))
 
     def _handler(self, signum: int, frame: Any) -> None:
         self.seen = signum

@@ -14,7 +14,6 @@ LeRobotDataset (``so101_sim.harness.rollouts``); without it nothing here changes
 
 from __future__ import annotations
 
-import signal
 import time
 from collections import Counter, deque
 from collections.abc import Callable
@@ -166,10 +165,9 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = DEFAULT_
     forwards_seen = forward_stats()
     reruns: list[dict[str, Any]] = []
     finished = False
-    # The loop asks each turn for a Ctrl-C dropped during garbage collection (else SIGINT keeps
-    # Python's handler's behaviour; SIGTERM, or a SIGINT ignored or handled by others, as is).
-    own = (Interrupts((signal.SIGINT,)) if sink is None
-           and signal.getsignal(signal.SIGINT) is signal.default_int_handler else None)
+    # Ctrl-C and SIGTERM (`timeout`, a cancelled job) end with the CLI's resume line, not a
+    # silent kill; the loop asks each turn for one dropped during garbage collection.
+    own = Interrupts.of_defaults() if sink is None else None
     interrupts = sink.interrupts if sink is not None else own
     if own is not None:
         own.install()
