@@ -165,6 +165,38 @@ def test_same_seed_same_actions_bitwise_identical_across_processes(pixel_env):
     assert out == _rollout_digest(pixel_env, seed=7)
 
 
+def test_a_rendering_env_copies_and_pickles_into_a_twin():
+    """`copy.deepcopy(env)` (a planner's branch) and `pickle` failed on a rendering env with
+    "ctypes objects containing pointers cannot be pickled" plus an ignored GLContext.__del__
+    traceback; a state env already copied. The twin renders its own frames, pixel for pixel,
+    and the original keeps rendering after the twins are closed. Domain randomisation: the
+    twin uploads the episode's table texture to its own renderer."""
+    import copy
+    import pickle
+
+    env = gym.make("so101_sim/PickPlaceDr-v0", image_size=SMALL, render_mode="rgb_array")
+    env.reset(seed=3)
+    actions = [env.action_space.sample() for _ in range(5)]
+    for a in actions[:2]:
+        env.step(a)
+    twins = [copy.deepcopy(env), pickle.loads(pickle.dumps(env))]
+    for a in actions[2:]:
+        obs, reward, *_ = env.step(a)
+        for twin in twins:
+            other, other_reward, *_ = twin.step(a)
+            assert other_reward == reward
+            np.testing.assert_array_equal(other["agent_pos"], obs["agent_pos"])
+            for cam in obs["pixels"]:
+                np.testing.assert_array_equal(other["pixels"][cam], obs["pixels"][cam])
+    frame = env.render()
+    assert frame.std() > 0  # a scene, not a blank frame
+    for twin in twins:
+        np.testing.assert_array_equal(twin.render(), frame)
+        twin.close()
+    np.testing.assert_array_equal(env.render(), frame)
+    env.close()
+
+
 def test_reset_randomises_cube_from_seed_only(state_env):
     a = state_env.reset(seed=11)[1]["cube_pose"]
     b = state_env.reset(seed=12)[1]["cube_pose"]

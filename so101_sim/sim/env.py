@@ -367,6 +367,11 @@ class SO101Env(gym.Env):
         return min(mujoco.mj_geomDistance(m, d, ids.cube_geoms[k], pad, 0.05, None)
                    for pad in (ids.fixed_pad, ids.moving_pad))
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Copies and pickles leave the renderer behind (a GL context cannot be copied); the
+        copy makes its own at its first frame, with the same pixels."""
+        return {**self.__dict__, "_renderer": None}
+
     def close(self) -> None:
         if self._renderer is not None:
             self._renderer.close()
