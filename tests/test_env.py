@@ -266,6 +266,16 @@ def test_bad_constructor_arguments():
         PickPlaceEnv(image_size=(0, 64))
     with pytest.raises(ValueError, match="render_mode"):
         PickPlaceEnv(render_mode="human")
+    for size in [(float("inf"), 64), (48.5, 64), ("48", 64)]:  # inf was an OverflowError
+        with pytest.raises(ValueError, match=r"image_size=.* is invalid; expected \(height"):
+            PickPlaceEnv(image_size=size)
+
+
+@pytest.mark.parametrize("width", [0, -5, "640", float("nan"), True, 4096])
+def test_a_mesh_width_that_is_no_image_width_is_named(width):
+    """`mesh_width=0` was a ZeroDivisionError from the mesh grid; -5 and "640" went on."""
+    with pytest.raises(ValueError, match=r"mesh_width=.* is invalid; expected the image width"):
+        PickPlaceEnv(obs_type="state", mesh_width=width)
 
 
 # ------------------------------------------------------------------------- episode ends

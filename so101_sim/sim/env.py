@@ -12,7 +12,12 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from so101_sim.sim.env_args import check_action, check_cameras, check_image_size
+from so101_sim.sim.env_args import (
+    check_action,
+    check_cameras,
+    check_image_size,
+    check_mesh_width,
+)
 from so101_sim.sim.glcheck import mujoco
 from so101_sim.sim.rendering import MultiCameraRenderer
 from so101_sim.sim.reset_options import Workspace, apply_reset_options, workspace
@@ -130,7 +135,7 @@ class SO101Env(gym.Env):
 
         # Mesh detail follows the image width, or `mesh_width`: a smaller render of a scene
         # recorded at a larger size keeps the geometry the recording (and the policy) saw.
-        width = self.image_size[1] if mesh_width is None else int(mesh_width)
+        width = self.image_size[1] if mesh_width is None else check_mesh_width(mesh_width)
         model, self.visuals = build_model(self.task, mesh_grid_for(self.task, width))
         self._randomizer = None
         if self.task.randomize is not None:

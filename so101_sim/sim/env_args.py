@@ -39,14 +39,32 @@ def check_cameras(cameras: Any) -> tuple[str, ...]:
     return names
 
 
+def _pixels(value: Any) -> int | None:
+    """`value` as an int in 16..2048 (an image side), else None."""
+    try:
+        ok = int(value) == value and not isinstance(value, (bool, str))
+    except (TypeError, ValueError, OverflowError):  # None, "640", nan, inf
+        return None
+    return int(value) if ok and 16 <= value <= 2048 else None
+
+
 def check_image_size(image_size: Any) -> tuple[int, int]:
     """(height, width) as ints in 16..2048, or a ValueError with an example."""
     try:
-        h, w = (int(v) for v in image_size)
-        ok = all(int(v) == v for v in image_size)
+        h, w = (_pixels(v) for v in image_size)
     except (TypeError, ValueError):
-        ok = False
-    if not ok or not (16 <= h <= 2048 and 16 <= w <= 2048):
+        h = w = None
+    if h is None or w is None:
         raise ValueError(f"image_size={image_size!r} is invalid; expected (height, width) "
                          "integers in 16..2048, e.g. (480, 640) or (96, 128)")
     return h, w
+
+
+def check_mesh_width(mesh_width: Any) -> int:
+    """An image width in 16..2048 whose mesh detail to use, or a ValueError."""
+    width = _pixels(mesh_width)
+    if width is None:
+        raise ValueError(f"mesh_width={mesh_width!r} is invalid; expected the image width "
+                         "whose mesh detail to use, an integer in 16..2048 (e.g. 640, the "
+                         "recorded width), or None for image_size's")
+    return width
