@@ -928,3 +928,31 @@ def test_an_export_leaves_out_folders_inside_the_checkpoint_and_says_so(
                      "eval's --out inside it, say); the export leaves them out"]
     assert sorted(f.name for f in out.iterdir()) == sorted(
         f.name for f in Path("p").iterdir() if f.name != "ev")
+
+
+@pytest.mark.parametrize(("name", "value"), [
+    ("episodes", 2.5), ("episodes", True), ("episodes", "3"), ("episodes", [100_000]),
+    ("n_envs", 2.5), ("threads", 0), ("max_retries", -1), ("checkpoint_every", 0),
+    ("worker_timeout_s", 0), ("worker_timeout_s", float("nan")), ("image_size", (0, 5)),
+])
+def test_evaluates_python_arguments_are_named_before_any_worker_starts(name, value, tmp_path):
+    """The Python API checked less than the CLI's flags: `episodes=2.5` ended in a TypeError
+    from range(), `True` ran one episode, `n_envs=2.5` and `threads=0` ran, `max_retries=-1`
+    ran with no rerun, `worker_timeout_s=0` failed every episode three times ("no reply within
+    0 s"), and `image_size=(0, 5)` came back as a worker that could not start."""
+    from so101_sim.harness import evaluate
+
+    with pytest.raises(ValueError, match=rf"^{name}=.* is invalid; expected "):
+        evaluate("expert", **{"episodes": 1, name: value}, out_dir=tmp_path / "run",
+                 progress=False, report=False, log=lambda line: None)
+    assert not (tmp_path / "run").exists()  # refused before the folder was made
+
+
+@pytest.mark.parametrize(("name", "value"), [("n_episodes", 2.5), ("n_episodes", 0),
+                                             ("seed_start", 1.5), ("seed_start", -1)])
+def test_records_python_counts_are_named(name, value, tmp_path):
+    from so101_sim.record import record
+
+    with pytest.raises(ValueError, match=rf"^{name}={value} is invalid; expected an integer"):
+        record(tmp_path / "data", **{"n_episodes": 1, name: value})
+    assert not (tmp_path / "data").exists()

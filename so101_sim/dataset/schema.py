@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 from so101_sim.tasks import DEFAULT_CAMERAS
+from so101_sim.utils.numbers import check_count
 from so101_sim.utils.text import seed_span
 from so101_sim.utils.units import FEATURE_NAMES
 
@@ -64,9 +65,7 @@ def check_video_size(image_size: tuple[int, int], what: str) -> None:
 
 def check_seed_range(seed_start: int, n_seeds: int = 1) -> None:
     """Refuse evaluation seeds: demos trained on them would leak into the benchmark."""
-    if seed_start < 0:
-        raise ValueError(f"seed_start={seed_start} is negative; demo seeds are "
-                         f"0..{EVAL_SEED_START - 1}")
+    check_count("seed_start", seed_start, 0, f"demo seeds are 0..{EVAL_SEED_START - 1}")
     if seed_start + n_seeds > EVAL_SEED_START:
         fix = (f"; {n_seeds} episodes fit with --seed-start {EVAL_SEED_START - n_seeds} or lower"
                if n_seeds > 1 and seed_start < EVAL_SEED_START else "")

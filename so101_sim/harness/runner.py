@@ -27,6 +27,7 @@ import numpy as np
 from so101_sim.dataset import EVAL_SEED_START, check_video_size
 from so101_sim.dataset.interrupts import Interrupts
 from so101_sim.harness.env_worker import EnvWorkerConfig
+from so101_sim.harness.eval_args import check_eval_args
 from so101_sim.harness.forwards import Forwards, forward_stats
 from so101_sim.harness.frames import Rendering, choose_rendering, to_policy_obs, with_cameras
 from so101_sim.harness.policies import ChunkRequest, EvalPolicy, load_policy
@@ -96,7 +97,10 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = DEFAULT_
     spec = load_task(task)  # parsed once here; the spec travels to the workers
     if not isinstance(policy, EvalPolicy):
         policy = load_policy(policy, task=spec)
-    _check_args(episodes, n_envs, seed_start, videos, allow_train_seeds)
+    check_eval_args(episodes=episodes, n_envs=n_envs, seed_start=seed_start, videos=videos,
+                    allow_train_seeds=allow_train_seeds, image_size=image_size, threads=threads,
+                    worker_timeout_s=worker_timeout_s, max_retries=max_retries,
+                    checkpoint_every=checkpoint_every)
     check_backend(backend, ray_address)
     info = policy.info
     check_unseen_seeds(info.demos, spec, range(seed_start, seed_start + episodes),
@@ -209,22 +213,6 @@ def evaluate(policy: EvalPolicy | str, *, task: str | Path | TaskSpec = DEFAULT_
         write_report(run.path, result, records)
     log(result["summary"])
     return result
-
-
-def _check_args(episodes: int, n_envs: int, seed_start: int, videos: int,
-                allow_train_seeds: bool) -> None:
-    if episodes < 1:
-        raise ValueError(f"episodes={episodes} is invalid; expected at least 1")
-    if n_envs < 1:
-        raise ValueError(f"n_envs={n_envs} is invalid; expected at least 1")
-    if videos < 0:
-        raise ValueError(f"videos={videos} is invalid; expected 0 or more")
-    if seed_start < 0:
-        raise ValueError(f"seed_start={seed_start} is invalid; seeds are >= 0")
-    if seed_start < EVAL_SEED_START and not allow_train_seeds:
-        raise ValueError(f"seed_start={seed_start} is a training seed (demos use seeds below "
-                         f"{EVAL_SEED_START}); evaluate on seeds >= {EVAL_SEED_START}, or pass "
-                         "--allow-train-seeds to measure on training seeds on purpose")
 
 
 def _open_rollouts(sink: Any, resume: bool, done: dict[int, EpisodeRecord],

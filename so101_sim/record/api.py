@@ -47,6 +47,7 @@ from so101_sim.sim.rendering import select_gl_backend
 from so101_sim.tasks import DEFAULT_TASK, load_task
 from so101_sim.utils.devices import RECORD_WORKER_MB, cpu_count, workers_that_fit
 from so101_sim.utils.locks import folder_lock
+from so101_sim.utils.numbers import check_count
 from so101_sim.utils.text import counted
 from so101_sim.utils.versions import installed
 from so101_sim.utils.video_backend import quiet_libav
@@ -56,8 +57,7 @@ from so101_sim.workers.local import start_fork_server
 
 def _check_args(n_episodes: int, workers: int, seed_start: int, vcodec: str | None,
                 checkpoint_every: int, resuming: bool) -> None:
-    if n_episodes < 1:
-        raise ValueError(f"n_episodes={n_episodes}; expected >= 1")
+    check_count("n_episodes", n_episodes, 1, "episodes to record")
     if not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers={workers!r} is invalid; expected an integer >= 1, e.g. "
                          f"--workers {cpu_count()} (one per CPU core)")
