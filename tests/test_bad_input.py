@@ -956,3 +956,15 @@ def test_records_python_counts_are_named(name, value, tmp_path):
     with pytest.raises(ValueError, match=rf"^{name}={value} is invalid; expected an integer"):
         record(tmp_path / "data", **{"n_episodes": 1, name: value})
     assert not (tmp_path / "data").exists()
+
+
+@pytest.mark.parametrize(("name", "value"), [
+    ("steps", 2.5), ("steps", True), ("batch_size", 2.5), ("threads", 0), ("stop_at", 2.5)])
+def test_trains_python_counts_are_named(name, value, tmp_path):
+    """`train(steps=2.5)` trained 2 steps, `steps=True` one, `batch_size=2.5` a batch of 2,
+    `threads=0` meant "adaptive", and `stop_at=2.5` was "outside 1..--steps (2)"."""
+    from so101_sim.train import TrainError, train
+
+    with pytest.raises(TrainError, match=rf"^{name}={value} is invalid; expected an integer"):
+        train(tmp_path / "data", tmp_path / "run", **{"steps": 2, name: value})
+    assert not (tmp_path / "run").exists()

@@ -21,11 +21,23 @@ import torch
 from so101_sim.train.checkpoint import TRAIN_INFO, read_train_info
 from so101_sim.train.presets import Preset
 from so101_sim.utils.atomic import write_text_atomic
+from so101_sim.utils.numbers import check_count
 from so101_sim.utils.versions import setup_differences
 
 
 class TrainError(RuntimeError):
     """Bad training input (dataset, preset, run folder)."""
+
+
+def check_counts(**counts: Any) -> None:
+    """Each count given (not None) an integer >= 1, else a TrainError naming it: the Python
+    API's `steps=2.5` trained 2 steps and `threads=0` meant "adaptive" in silence."""
+    for name, value in counts.items():
+        if value is not None:
+            try:
+                check_count(name, value, 1)
+            except ValueError as exc:
+                raise TrainError(str(exc)) from None
 
 
 class TrainingStopped(KeyboardInterrupt):

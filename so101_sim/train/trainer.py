@@ -53,6 +53,7 @@ from so101_sim.train.state import (
     TrainError,
     TrainingStopped,
     architecture,
+    check_counts,
     check_same_architecture,
     check_same_dataset,
     copy_policy,
@@ -127,9 +128,7 @@ def train(dataset_dir: Path, out: Path, preset_name: str = "cpu", steps: int | N
     note = slow_bf16_note(precision, device)
     if note:
         print(f"so101-sim train: {note}")
-    for name, value in (("--steps", steps), ("--batch-size", batch_size)):
-        if value is not None and value < 1:
-            raise TrainError(f"{name} {value} is invalid; expected an integer >= 1")
+    check_counts(steps=steps, batch_size=batch_size, threads=threads, stop_at=stop_at)
     weighting = None if oversample_closes is None else CloseWeighting(float(oversample_closes))
     out = Path(out)
     existed = out.exists()
