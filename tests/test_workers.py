@@ -292,3 +292,42 @@ def test_workers_do_not_import_the_commands_module_again(tmp_path, how) -> None:
     assert len(seen["workers"]) == 3 and seen["driver"] in importers
     assert not set(seen["workers"]) & set(importers)  # no worker imported it itself
     assert len(importers) == 2  # the driver and the fork server, once each
+
+
+STDIN_SERVICE = """
+class Echo:
+    def echo(self, x):
+        return x
+
+class EchoFactory:
+    def __call__(self):
+        return Echo()
+"""
+
+STDIN_SCRIPT = """
+from stdin_service import EchoFactory
+from so101_sim.workers import start_pool
+with start_pool(EchoFactory(), 2, name="test-stdin") as pool:
+    pool.submit(0, "echo", 1)
+    print(pool.collect()[0].value)
+"""
+
+
+def test_a_script_read_from_stdin_is_refused_in_one_line(tmp_path) -> None:
+    """`python - <<EOF` names its __main__ '<stdin>', which each forkserver worker ran again
+    from the cwd: every worker died on FileNotFoundError under its own traceback, and the pool
+    said only "exited with code None while starting". Now one line says why and what works."""
+    (tmp_path / "stdin_service.py").write_text(STDIN_SERVICE)
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-"], input=STDIN_SCRIPT, capture_output=True,
+                         text=True, timeout=120, cwd=tmp_path, env=env)
+    assert out.returncode == 1
+    assert out.stderr.strip().splitlines()[-1] == (
+        "RuntimeError: so101_sim's env workers start with multiprocessing's forkserver, which "
+        f"runs this program's __main__ again from its file, and '{tmp_path / '<stdin>'}' is "
+        "not a file (a script read from stdin, as `python - <<EOF` does): save the script and "
+        "run `python script.py`, or pass it with `python -c`")
+    assert "FileNotFoundError" not in out.stderr  # no worker was started
+    fixed = subprocess.run([sys.executable, "-c", STDIN_SCRIPT], capture_output=True,
+                           text=True, timeout=120, cwd=tmp_path, env=env)
+    assert fixed.returncode == 0 and fixed.stdout.split() == ["1"], fixed.stderr[-2000:]

@@ -114,12 +114,28 @@ def start_fork_server(preload: tuple[str, ...]) -> None:
     ensure_fork_server()
 
 
+def check_main_reloadable() -> None:
+    """Refuse, in one line, a program whose ``__main__`` the workers cannot run again: each
+    forkserver child re-runs it from its path, and a script read from stdin (`python - <<EOF`)
+    names '<stdin>', so every worker died on FileNotFoundError under its own traceback."""
+    from multiprocessing.spawn import get_preparation_data
+
+    path = get_preparation_data("check").get("init_main_from_path")
+    if path is not None and not os.path.isfile(path):
+        raise RuntimeError(
+            f"so101_sim's env workers start with multiprocessing's forkserver, which runs this "
+            f"program's __main__ again from its file, and {path!r} is not a file (a script "
+            "read from stdin, as `python - <<EOF` does): save the script and run `python "
+            "script.py`, or pass it with `python -c`")
+
+
 class LocalPool(WorkerPool):
     """N forkserver processes, one service each."""
 
     def __init__(self, factory: Callable[[], Any], n: int, *, name: str,
                  preload: tuple[str, ...] = (), timeout_s: float = 600.0,
                  start_timeout_s: float = 300.0) -> None:
+        check_main_reloadable()
         self.factory, self.name = factory, name
         self.timeout_s, self.start_timeout_s = timeout_s, start_timeout_s
         self._ctx = mp.get_context("forkserver")
