@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from shlex import quote
 
 from so101_sim.utils.text import counted
 
@@ -29,6 +30,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
                      seed=args.seed, task=args.task)
     for name, path in paths.items():
         print(f"{name}: {path}")
+    print(f"open the scene in MuJoCo's viewer: python -m mujoco.viewer --mjcf="
+          f"{quote(str(paths['scene']))} (keyframe seed_{args.seed}: the rollout's start)")
     return 0
 
 

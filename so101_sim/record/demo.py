@@ -11,6 +11,7 @@ import numpy as np
 from tqdm import tqdm
 
 from so101_sim.sim.env import IMAGE_SIZE, PickPlaceEnv
+from so101_sim.sim.scene import mesh_grid_for, scene_xml
 from so101_sim.tasks import DEFAULT_TASK
 from so101_sim.utils.mp4 import H264Writer
 from so101_sim.utils.paths import foreign_folder
@@ -50,10 +51,14 @@ def _make_folder(out_dir: Path) -> None:
 
 def run_demo(out_dir: Path, steps: int = 240, image_size: tuple[int, int] = IMAGE_SIZE,
              seed: int = 0, task: str = DEFAULT_TASK) -> dict[str, Path]:
-    """Write demo.mp4 (front|side) and one PNG per camera (the last frame) into `out_dir`."""
+    """Write demo.mp4 (front|side), one PNG per camera (the last frame) and scene.xml (the
+    scene for plain MuJoCo, the seed's start as keyframe ``seed_N``) into `out_dir`."""
     _make_folder(out_dir)
     env = PickPlaceEnv(task=task, image_size=image_size, render_mode="rgb_array")
     obs, _ = env.reset(seed=seed)
+    scene = out_dir / "scene.xml"
+    scene.write_text(scene_xml(env.task, mesh_grid_for(env.task, image_size[1]), env.data,
+                               key=f"seed_{seed}"))
     video_path = out_dir / "demo.mp4"
     with H264Writer(video_path, fps=env.task.fps) as writer:
         writer.append(env.render())
@@ -62,7 +67,7 @@ def run_demo(out_dir: Path, steps: int = 240, image_size: tuple[int, int] = IMAG
             writer.append(env.render())
             if terminated or truncated:
                 break
-    paths = {"video": video_path}
+    paths = {"video": video_path, "scene": scene}
     for cam in env.cameras:
         paths[cam] = out_dir / f"{cam}.png"
         imageio.imwrite(paths[cam], obs["pixels"][cam])

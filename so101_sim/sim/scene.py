@@ -50,6 +50,32 @@ def build_model(task: TaskSpec, mesh_grid: float = 0.002) -> tuple[mujoco.MjMode
     Cached per (task, grid): envs in one process share the model and own their MjData (an env
     with domain randomization works on its own copy).
     """
+    spec, visuals = scene_spec(task, mesh_grid)
+    return spec.compile(), visuals
+
+
+def scene_xml(task: TaskSpec, mesh_grid: float, data: mujoco.MjData | None = None,
+              key: str = "start") -> str:
+    """The task's scene as one MJCF file that plain MuJoCo loads (`python -m mujoco.viewer
+    --mjcf=FILE`): the simplified meshes inline, and with `data`, its state as keyframe `key`.
+    Per-episode domain randomization (colours, lights, texture) edits the compiled model, so
+    the file holds the task's undrawn scene (the table plain: MJCF has no in-memory texture)."""
+    spec, _ = scene_spec(task, mesh_grid)
+    if task.randomize is not None and task.randomize.table_texture is not None:
+        spec.geom("table").material = ""
+        spec.delete(spec.material("table_mat"))
+        spec.delete(spec.texture("table_tex"))
+    if data is not None:
+        spec.add_key(name=key, time=data.time, qpos=data.qpos.tolist(),
+                     qvel=data.qvel.tolist(), act=data.act.tolist(), ctrl=data.ctrl.tolist(),
+                     mpos=data.mocap_pos.ravel().tolist(),
+                     mquat=data.mocap_quat.ravel().tolist())
+    spec.compile()  # to_xml writes what compiles
+    return spec.to_xml()
+
+
+def scene_spec(task: TaskSpec, mesh_grid: float) -> tuple[mujoco.MjSpec, str]:
+    """The uncompiled scene for `task` and its visuals ("mesh"|"primitive")."""
     spec = mujoco.MjSpec.from_file(str(assets_dir() / SCENE_FILE))
     visuals = _attach_meshes(spec, mesh_grid)
 
@@ -64,7 +90,7 @@ def build_model(task: TaskSpec, mesh_grid: float = 0.002) -> tuple[mujoco.MjMode
     get_kind(task.kind).furnish(spec, task)
     if task.randomize is not None:
         _add_randomization_assets(spec, task)
-    return spec.compile(), visuals
+    return spec, visuals
 
 
 def _add_randomization_assets(spec: mujoco.MjSpec, task: TaskSpec) -> None:
