@@ -175,7 +175,7 @@ def failures_note(root: Path, repo_id: str, failed: list[int], total: int) -> st
     ok = shlex.quote(f"{Path(root)}_ok")
     return (f"so101-sim train: note: {len(failed)} of {total} episodes in {root} failed "
             "(episode_success false: rollouts keep every outcome) and are imitated like the "
-            f"rest; to train on the successes only: lerobot-edit-dataset --repo_id "
+            "rest; to train on the successes only: lerobot-edit-dataset --repo_id "
             f"{shlex.quote(repo_id)} --root {shlex.quote(str(root))} --new_repo_id "
             f"{shlex.quote(f'{repo_id}_ok')} --new_root {ok} "
             f"--operation.type delete_episodes --operation.episode_indices '{failed}'")
